@@ -1,0 +1,31 @@
+# Quick start: `make run` (set up, run matrix.yaml, write its report) and `make test`.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+
+.PHONY: setup run report test bench clean
+
+$(BIN)/bench-matrix: requirements.lock pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -r requirements.lock
+	$(BIN)/python -m pip install --quiet --no-deps -e .
+	touch $@
+
+setup: $(BIN)/bench-matrix
+
+run: setup
+	$(BIN)/bench-matrix run matrix.yaml
+	$(BIN)/bench-matrix report
+
+report: setup
+	$(BIN)/bench-matrix report
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+bench: setup
+	$(BIN)/python benchmarks/harness_overhead.py
+
+clean:
+	rm -rf $(VENV) .bench-matrix

@@ -1,0 +1,100 @@
+"""What a backend is: declared capabilities, a probe, convert (source -> artifact) and load (artifact -> session)."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.sources import SourceModel
+
+
+@dataclass(frozen=True)
+class Support:
+    """One family of combinations a backend runs; a backend declares a tuple of these as data."""
+
+    frameworks: tuple[str, ...]
+    strategies: tuple[str, ...]
+    precisions: tuple[str, ...]
+    targets: tuple[str, ...]
+
+    def covers(self, framework: str, strategy: str, precision: str, target: str) -> bool:
+        return (framework in self.frameworks and strategy in self.strategies
+                and precision in self.precisions and target in self.targets)
+
+
+@dataclass(frozen=True)
+class ConvertRequest:
+    """Everything a backend needs to turn the pristine source model into an artifact."""
+
+    source: SourceModel
+    strategy: StrategySpec
+    precision: str
+    target: str
+    out_dir: Path  # write every file of the artifact here, and nothing else
+    calibration: Callable[[int], np.ndarray]  # n -> first n preprocessed calibration samples
+    threads: int
+    seed: int
+
+
+class Session(ABC):
+    """A loaded artifact ready to run; `execute` returns only once the work is finished."""
+
+    def prepare(self, x: np.ndarray) -> Any:
+        """Put a batch where the runtime reads it (device memory, a feed dict); not timed."""
+        return x
+
+    @abstractmethod
+    def execute(self, prepared: Any) -> Any:
+        """Run one batch and wait for completion (synchronise devices); this call is what is timed."""
+
+    def fetch(self, outputs: Any) -> np.ndarray:
+        """Outputs as a float32 host array (int8 outputs dequantised with their scale and zero point)."""
+        return np.asarray(outputs, dtype=np.float32)
+
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        return self.fetch(self.execute(self.prepare(x)))
+
+    def info(self) -> dict[str, Any]:
+        """Facts about the session worth recording (providers actually used, device)."""
+        return {}
+
+
+class Backend(ABC):
+    """A runtime that converts models and runs them; knows nothing of the runner."""
+
+    name: ClassVar[str]
+    description: ClassVar[str]
+    supports: ClassVar[tuple[Support, ...]]
+    baseline_for: ClassVar[tuple[str, ...]] = ()  # frameworks whose fp32 reference this backend computes
+
+    def versions(self) -> dict[str, str]:
+        """Versions of the libraries this backend uses (part of the artifact cache key and of `env`)."""
+        return {}
+
+    def probe(self, target: str, precision: str) -> str | None:
+        """Why this machine cannot run `target`/`precision`, or None when it can."""
+        return None
+
+    def invalid_reason(self, framework: str, strategy: str, precision: str, target: str) -> str | None:
+        """Why the combination is not one this backend implements, or None."""
+        if any(s.covers(framework, strategy, precision, target) for s in self.supports):
+            return None
+        if not any(framework in s.frameworks for s in self.supports):
+            frameworks = sorted({f for s in self.supports for f in s.frameworks})
+            return f"{self.name} takes {', '.join(frameworks)} models, not {framework}"
+        return f"{self.name} does not implement {strategy} at {precision} on {target}"
+
+    @abstractmethod
+    def convert(self, request: ConvertRequest) -> dict[str, Any]:
+        """Write the artifact's files into request.out_dir; return JSON-serialisable metadata for `load`."""
+
+    @abstractmethod
+    def load(self, artifact_dir: Path, meta: dict[str, Any], target: str, precision: str,
+             threads: int) -> Session:
+        """Load a converted artifact for inference with exactly `threads` threads."""

@@ -1,0 +1,153 @@
+"""The `bench-matrix` command: run, plan, report, backends, schema."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from bench_matrix import __version__
+from bench_matrix.errors import MatrixError, UserError
+
+FILTER_KEYS = ("model", "backend", "strategy", "precision", "target")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    from rich.console import Console
+
+    console, errors = Console(), Console(stderr=True)
+    if not console.is_terminal:  # logs and pipes: wide enough that tables do not fold every cell
+        console = Console(width=max(console.width, 160))
+    try:
+        return args.handler(args, console)
+    except MatrixError as exc:
+        errors.print(f"[bold red]error:[/] {len(exc.problems)} problem(s) in the matrix file:", highlight=False)
+        for problem in exc.problems:
+            errors.print(f"  {problem}", markup=False, highlight=False)
+        return exc.exit_code
+    except UserError as exc:
+        errors.print("[bold red]error:[/] ", end="", highlight=False)
+        errors.print(str(exc), markup=False, highlight=False)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        errors.print("\n[yellow]interrupted.[/] Every finished cell is saved; run the same command again to "
+                     "resume where it stopped.", highlight=False)
+        return 130
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="bench-matrix", description="Measure size, accuracy and speed of every "
+                                     "framework x strategy x precision x target combination in a matrix file.")
+    parser.add_argument("--version", action="version", version=f"bench-matrix {__version__}")
+    parser.add_argument("--workspace", type=Path, default=Path(".bench-matrix"),
+                        help="cache, logs and default results live here (default: %(default)s)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    run = sub.add_parser("run", help="run the matrix (finished cells are kept; a re-run resumes)")
+    run.add_argument("matrix", type=Path)
+    run.add_argument("--results", type=Path, help="SQLite results file (default: WORKSPACE/results.sqlite)")
+    run.add_argument("--force", action="store_true", help="re-run cells that already have a stored result")
+    _filters(run)
+    run.set_defaults(handler=_run)
+
+    plan = sub.add_parser("plan", help="expand the matrix and show what run would do with each cell")
+    plan.add_argument("matrix", type=Path)
+    plan.add_argument("--results", type=Path, help="mark cells already stored in this results file")
+    _filters(plan)
+    plan.set_defaults(handler=_plan)
+
+    report = sub.add_parser("report", help="tables in the terminal and Markdown pages from stored results")
+    report.add_argument("--results", type=Path, help="SQLite results file (default: WORKSPACE/results.sqlite)")
+    report.add_argument("--format", choices=("table", "md", "json", "csv"), default="table")
+    report.add_argument("--out", type=Path, default=Path("reports"), help="directory for pages (default: %(default)s)")
+    report.set_defaults(handler=_report)
+
+    backends = sub.add_parser("backends", help="installed backends, what they support, what this machine can run")
+    backends.set_defaults(handler=_backends)
+
+    schema = sub.add_parser("schema", help="print the JSON Schema of matrix files")
+    schema.set_defaults(handler=_schema)
+    return parser
+
+
+def _filters(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("filters (repeat an option or separate values with commas)")
+    for key in FILTER_KEYS:
+        group.add_argument(f"--{key}", action="append", metavar=key.upper(), help=f"only cells with this {key}")
+
+
+def _selected(args: argparse.Namespace):
+    from bench_matrix.runner import Filters
+
+    values = {}
+    for key in FILTER_KEYS:
+        given = getattr(args, key)
+        if given:
+            values[key] = frozenset(v.strip() for item in given for v in item.split(",") if v.strip())
+    return Filters(values)
+
+
+def _load(args: argparse.Namespace):
+    from bench_matrix.backends.registry import available
+    from bench_matrix.matrix import load_matrix
+    from bench_matrix.workspace import Workspace
+
+    return load_matrix(args.matrix, backends=list(available())), Workspace(args.workspace)
+
+
+def _run(args: argparse.Namespace, console) -> int:
+    from bench_matrix.runner import Runner, resolve
+    from bench_matrix.store import ResultStore
+
+    matrix, ws = _load(args)
+    console.print(f"[bold]bench-matrix {__version__}[/] · {matrix.path} · results in "
+                  f"{args.results or ws.results}", highlight=False)
+    planned = resolve(matrix, ws)
+    store = ResultStore(args.results or ws.results)
+    try:
+        counts = Runner(matrix, ws, store, console).run(planned, _selected(args), args.force)
+    finally:
+        store.close()
+    invalid = len(planned.expansion.by_state("invalid"))
+    console.print(f"[bold]done:[/] {counts['ok']} ok, {counts['skipped']} skipped, {counts['failed']} failed, "
+                  f"{counts['cached']} already stored" + (f"; {invalid} combinations are not valid "
+                                                          f"(`bench-matrix plan` says why)" if invalid else ""))
+    console.print("Next: [bold]bench-matrix report[/]", highlight=False)
+    return 0
+
+
+def _plan(args: argparse.Namespace, console) -> int:
+    from bench_matrix.plan_view import show_plan
+    from bench_matrix.runner import resolve
+
+    matrix, ws = _load(args)
+    show_plan(console, matrix, ws, resolve(matrix, ws), _selected(args), args.results)
+    return 0
+
+
+def _report(args: argparse.Namespace, console) -> int:
+    from bench_matrix.report import write_report
+
+    results = args.results or args.workspace / "results.sqlite"
+    write_report(results, args.format, args.out, console)
+    return 0
+
+
+def _backends(args: argparse.Namespace, console) -> int:
+    from bench_matrix.plan_view import show_backends
+    from bench_matrix.workspace import Workspace
+
+    show_backends(console, Workspace(args.workspace))
+    return 0
+
+
+def _schema(args: argparse.Namespace, console) -> int:
+    from bench_matrix.matrix.schema import schema_json
+
+    sys.stdout.write(schema_json())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,233 @@
+"""The jobs a worker process runs: probe backends, prepare dataset and model, convert, measure."""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import shutil
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench_matrix import data
+from bench_matrix.backends.base import Backend, ConvertRequest, Session
+from bench_matrix.backends.registry import BackendLoadError, load_backend
+from bench_matrix.errors import UserError
+from bench_matrix.matrix.schema import STRATEGY_KINDS
+from bench_matrix.matrix.spec import ModelSpec, StrategySpec
+from bench_matrix.measure import env as environment
+from bench_matrix.measure.size import artifact_size
+from bench_matrix.measure.stats import accuracy, latency_summary
+from bench_matrix.measure.timing import LoopSettings, throughput, time_calls
+from bench_matrix.sources import SourceModel
+from bench_matrix.worker import phase
+from bench_matrix.workspace import Workspace, digest, file_sha256
+
+NONE = StrategySpec(name="none", kind="none")
+LATENCY_INPUTS = 16
+
+
+def probe(job: dict[str, Any]) -> dict[str, Any]:
+    """Describe each backend and judge each (backend, framework, kind, precision, target) combination."""
+    backends: dict[str, Backend | None] = {}
+    described: dict[str, Any] = {}
+    for name in job["backends"]:
+        try:
+            b = load_backend(name)
+            backends[name] = b
+            described[name] = {"error": None, "description": b.description, "versions": b.versions(),
+                               "baseline_for": list(b.baseline_for),
+                               "supports": [{k: list(getattr(s, k)) for k in ("frameworks", "strategies",
+                                             "precisions", "targets")} for s in b.supports]}
+        except BackendLoadError as exc:
+            backends[name], described[name] = None, {"error": str(exc)}
+    keys = job["keys"]
+    if keys == "declared":  # every combination the loaded backends declare
+        keys = [(n, f, st, p, t) for n, b in backends.items() if b for s in b.supports for f in s.frameworks
+                for st in s.strategies for p in s.precisions for t in s.targets]
+    verdicts = {}
+    for key in keys:
+        name, framework, kind, precision, target = key
+        b = backends[name]
+        if b is None:
+            verdicts["|".join(key)] = {"invalid": None, "skip": described[name]["error"]}
+            continue
+        invalid = b.invalid_reason(framework, kind, precision, target)
+        try:
+            skip = None if invalid else b.probe(target, precision)
+        except Exception as exc:  # a probe that crashes is a reason, not a crash of the run
+            skip = f"probing {name} for {target}/{precision} failed: {type(exc).__name__}: {exc}"
+        verdicts["|".join(key)] = {"invalid": invalid, "skip": skip}
+    return {"backends": described, "verdicts": verdicts}
+
+
+def prepare_dataset(job: dict[str, Any]) -> dict[str, Any]:
+    phase("dataset")
+    directory, info = data.prepare(job["dataset"], Workspace(Path(job["workspace"])))
+    return {"dir": str(directory), "info": info}
+
+
+def prepare_model(job: dict[str, Any]) -> dict[str, Any]:
+    """Materialise the source model (training built-ins), check it, and compute the fp32 reference outputs."""
+    spec: ModelSpec = job["model"]
+    ws = Workspace(Path(job["workspace"]))
+    ddir, dinfo, settings = Path(job["dataset_dir"]), job["dataset_info"], job["settings"]
+    key = digest({"model": spec, "dataset": dinfo["fingerprint"], "seed": settings.seed,
+                  "eval": settings.eval_samples, "files": _spec_files_sha(spec), "format": 1})
+    out = ws.models(key)
+    if (out / "prepared.json").is_file():
+        return json.loads((out / "prepared.json").read_text())
+    phase("prepare")
+    h, w, c = dinfo["sample_shape"]
+    shape = (c, h, w) if spec.layout == "nchw" else (h, w, c)
+    source, training = _source(spec, ws, ddir, dinfo, job["preprocess"], settings, shape)
+    baseline = load_backend(job["baseline_backend"])
+    artifact, manifest, _ = ensure_artifact(ws, baseline, source, NONE, "fp32", "cpu", ddir, dinfo,
+                                            job["preprocess"], spec.layout, settings)
+    session = baseline.load(artifact / "model", manifest["meta"], "cpu", "fp32", settings.threads)
+    x, y = data.load_split(ddir, "test", job["preprocess"], spec.layout, settings.eval_samples)
+    pred = predict_all(session, x, settings.batch_size)
+    if pred.reshape(len(y), -1).shape != y.shape:
+        raise UserError(f"model {spec.name} outputs {pred.shape[1:]} per sample but the dataset has "
+                        f"{y.shape[1]} label column(s) ({', '.join(dinfo['label_columns'])})")
+    out.mkdir(parents=True, exist_ok=True)
+    np.save(out / "reference.npy", pred)
+    info = {"framework": spec.framework, "source": _describe(spec), "params": manifest["params"],
+            "sha256": source.sha256, "baseline_key": "/".join((spec.name, baseline.name, "none", "fp32", "cpu")),
+            "test_mse": accuracy(pred, y, None)["mse"], "mean_predictor_mse": dinfo["mean_predictor_mse"],
+            "test_samples": int(len(y)), "training": training}
+    result = {"source": source.to_dict(), "info": info, "reference": str(out / "reference.npy")}
+    (out / "prepared.json").write_text(json.dumps(result, indent=1))
+    return result
+
+
+def convert(job: dict[str, Any]) -> dict[str, Any]:
+    phase("convert")
+    source = SourceModel.from_dict(job["source"])
+    artifact, manifest, cached = ensure_artifact(
+        Workspace(Path(job["workspace"])), load_backend(job["cell"].backend), source, job["strategy"],
+        job["cell"].precision, job["cell"].target, Path(job["dataset_dir"]), job["dataset_info"],
+        job["preprocess"], job["layout"], job["settings"])
+    return {"artifact_dir": str(artifact), "manifest": manifest, "cached": cached}
+
+
+def measure(job: dict[str, Any]) -> dict[str, Any]:
+    """Load, time at batch 1, time throughput, record peak memory, then evaluate accuracy."""
+    cell, settings, layout, pre = job["cell"], job["settings"], job["layout"], job["preprocess"]
+    ddir, artifact, manifest = Path(job["dataset_dir"]), Path(job["artifact_dir"]), job["manifest"]
+    backend = load_backend(cell.backend)
+    x_few, _ = data.load_split(ddir, "test", pre, layout, max(LATENCY_INPUTS, settings.batch_size))
+    phase("load")
+    begin = time.perf_counter()
+    session = backend.load(artifact / "model", manifest["meta"], cell.target, cell.precision, settings.threads)
+    load_s = time.perf_counter() - begin
+    singles = [session.prepare(x_few[i:i + 1]) for i in range(min(LATENCY_INPUTS, len(x_few)))]
+    batch = session.prepare(np.resize(x_few, (settings.batch_size, *x_few.shape[1:])))
+    loop = LoopSettings(settings.warmup_iterations, settings.warmup_s, settings.min_iterations,
+                        settings.min_time_s, settings.max_time_s)
+    phase("measure")
+    durations = time_calls(session.execute, singles, loop)
+    rate = throughput(session.execute, batch, settings.batch_size, settings.throughput_time_s)
+    peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    phase("evaluate")
+    x, y = data.load_split(ddir, "test", pre, layout, settings.eval_samples)
+    pred = predict_all(session, x, settings.batch_size)
+    reference = np.load(job["reference"]) if job.get("reference") else None
+    metrics = {**artifact_size(artifact / "model"), "params": manifest["params"],
+               **accuracy(pred, y, reference), "latency_ms": latency_summary(durations), **rate,
+               "batch_size": settings.batch_size, "peak_rss_mb": round(peak_rss_mb, 1),
+               "convert_s": manifest["convert_s"], "load_s": load_s, "threads": settings.threads,
+               "artifact_cached": job["cached"], "session": session.info(), "test_samples": int(len(y))}
+    return {"metrics": metrics, "env": {**environment.capture(), "runtime": session.info()}}
+
+
+def predict_all(session: Session, x: np.ndarray, batch_size: int) -> np.ndarray:
+    return np.concatenate([session.predict(x[i:i + batch_size]) for i in range(0, len(x), batch_size)])
+
+
+def ensure_artifact(ws: Workspace, backend: Backend, source: SourceModel, strategy: StrategySpec,
+                    precision: str, target: str, ddir: Path, dinfo: dict, preprocess: Any, layout: str,
+                    settings: Any) -> tuple[Path, dict[str, Any], bool]:
+    """Convert once per content hash (source, strategy, options, libraries, calibration data); reuse after."""
+    calibrated = any("calibration_samples" in STRATEGY_KINDS[k]["options"] for k in strategy.kinds())
+    key = digest({"source": source.sha256, "backend": backend.name, "versions": backend.versions(),
+                  "strategy": strategy.to_dict(), "precision": precision, "target": target,
+                  "calibration": [dinfo["fingerprint"], layout] if calibrated else None, "seed": settings.seed})
+    final = ws.artifact(backend.name, key)
+    if (final / "manifest.json").is_file():
+        return final, json.loads((final / "manifest.json").read_text()), True
+    tmp = final.with_name(f"{final.name}.tmp{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "model").mkdir(parents=True)
+
+    def calibration(n: int) -> np.ndarray:
+        return data.load_split(ddir, "calibration", preprocess, layout, n)[0]
+
+    request = ConvertRequest(source=source, strategy=strategy, precision=precision, target=target,
+                             out_dir=tmp / "model", calibration=calibration, threads=settings.threads,
+                             seed=settings.seed)
+    begin = time.perf_counter()
+    meta = backend.convert(request)
+    convert_s = time.perf_counter() - begin
+    manifest = {"meta": meta, "convert_s": convert_s, "params": _params(source),
+                "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                "versions": backend.versions(), "source_sha256": source.sha256, "strategy": strategy.to_dict(),
+                "precision": precision, "target": target}
+    (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1, default=str))
+    try:
+        tmp.rename(final)
+    except OSError:  # another process finished the same artifact first: keep theirs
+        shutil.rmtree(tmp, ignore_errors=True)
+    return final, json.loads((final / "manifest.json").read_text()), False
+
+
+def _params(source: SourceModel) -> int:
+    if source.framework == "onnx":
+        import onnx
+
+        return int(sum(np.prod(t.dims) for t in onnx.load(str(source.path)).graph.initializer))
+    from bench_matrix.sources.pytorch import count_params
+
+    return count_params(source.load())
+
+
+def _source(spec: ModelSpec, ws: Workspace, ddir: Path, dinfo: dict, preprocess: Any, settings: Any,
+            shape: tuple[int, ...]) -> tuple[SourceModel, dict[str, Any] | None]:
+    if spec.builtin:
+        from bench_matrix.workload.pilotnet_torch import FACTORIES
+        from bench_matrix.workload.train import train_torch
+
+        key = digest({"builtin": spec.builtin, "training": spec.training, "dataset": dinfo["fingerprint"],
+                      "seed": settings.seed, "layout": spec.layout})
+        weights = ws.models(key) / "model.pt"
+        facts_file = weights.with_name("training.json")
+        if not facts_file.is_file():
+            phase("train")
+            x, y = data.load_split(ddir, "train", preprocess, spec.layout)
+            facts = train_torch(FACTORIES[spec.builtin], x, y, spec.training, settings.seed, weights,
+                                threads=len(os.sched_getaffinity(0)))
+            facts_file.write_text(json.dumps(facts))
+        return (SourceModel(spec.name, "pytorch", "state_dict", weights, file_sha256(weights), shape,
+                            factory=FACTORIES[spec.builtin]), json.loads(facts_file.read_text()))
+    if spec.file:
+        from bench_matrix.matrix.load import MODEL_SUFFIXES
+
+        fmt = MODEL_SUFFIXES[spec.file.suffix.lower()][1]
+        return SourceModel(spec.name, spec.framework, fmt, spec.file, file_sha256(spec.file), shape), None
+    assert spec.weights is not None and spec.factory is not None
+    return (SourceModel(spec.name, "pytorch", "state_dict", spec.weights, file_sha256(spec.weights), shape,
+                        factory=spec.factory, python_path=tuple(str(p) for p in spec.python_path)), None)
+
+
+def _spec_files_sha(spec: ModelSpec) -> list[str]:
+    return [file_sha256(p) for p in (spec.file, spec.weights) if p is not None]
+
+
+def _describe(spec: ModelSpec) -> str:
+    if spec.builtin:
+        return f"builtin {spec.builtin} (trained on the dataset's training split)"
+    return str(spec.file) if spec.file else f"{spec.factory} + {spec.weights}"

@@ -1,0 +1,134 @@
+"""Run one job in its own process with a timeout; wait without polling while the child measures."""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import select
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+TAIL_LINES = 12
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "TF_NUM_INTRAOP_THREADS")
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """How a child ended: its job's value, or why it failed (error text, log tail)."""
+
+    value: Any = None
+    error: str | None = None
+    user_error: bool = False
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+def run_job(job: dict[str, Any], workdir: Path, log: Path, timeout_s: float, threads: int | None = None,
+            on_phase: Callable[[str], None] = lambda _: None, tick: Callable[[], None] = lambda: None) -> Outcome:
+    """Start `python -m bench_matrix.worker` on `job`; kill its process group at `timeout_s`."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    log.parent.mkdir(parents=True, exist_ok=True)
+    stem = f"job-{os.getpid()}-{time.monotonic_ns()}"
+    job_path, result_path = workdir / f"{stem}.pickle", workdir / f"{stem}.json"
+    job_path.write_bytes(pickle.dumps({**job, "result_path": str(result_path)}))
+    read_fd, write_fd = os.pipe()
+    env = dict(os.environ, BENCH_MATRIX_PHASE_FD=str(write_fd), PYTHONUNBUFFERED="1")
+    if threads is not None:
+        env.update({name: str(threads) for name in THREAD_VARIABLES})
+    with open(log, "ab") as log_file:
+        log_file.write(f"\n=== {job['mode']} {time.strftime('%Y-%m-%d %H:%M:%S')} ===\n".encode())
+        log_file.flush()
+        proc = subprocess.Popen([sys.executable, "-m", "bench_matrix.worker", str(job_path)], stdin=subprocess.DEVNULL,
+                                stdout=log_file, stderr=subprocess.STDOUT, pass_fds=(write_fd,), env=env,
+                                start_new_session=True)
+    os.close(write_fd)
+    try:
+        timed_out, last_phase = _wait(proc, read_fd, timeout_s, on_phase, tick)
+    except BaseException:  # Ctrl-C or any error in the parent: never leave a child measuring
+        _kill_group(proc)
+        raise
+    finally:
+        os.close(read_fd)
+    try:
+        if timed_out:
+            return Outcome(error=f"timed out after {timeout_s:g} s (in phase '{last_phase}'); "
+                                 f"raise settings.timeout_s if this cell needs longer. Log: {log}")
+        if result_path.is_file():
+            result = json.loads(result_path.read_text())
+            if result["ok"]:
+                return Outcome(value=result["value"])
+            return Outcome(error=_reason(result["error"], result.get("traceback", "")),
+                           user_error=result.get("user_error", False))
+        return Outcome(error=f"the process died ({_describe_exit(proc.returncode)}) in phase '{last_phase}'; "
+                             f"last lines of {log}:\n{_tail(log)}")
+    finally:
+        job_path.unlink(missing_ok=True)
+        result_path.unlink(missing_ok=True)
+
+
+def _wait(proc: subprocess.Popen, read_fd: int, timeout_s: float, on_phase: Callable[[str], None],
+          tick: Callable[[], None]) -> tuple[bool, str]:
+    """Block on the child's exit and phase messages; tick once a second except while it measures."""
+    pidfd = os.pidfd_open(proc.pid)
+    deadline = time.monotonic() + timeout_s
+    watched, phase = [pidfd, read_fd], "start"
+    try:
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                _kill_group(proc)
+                return True, phase
+            wait = remaining if phase == "measure" else min(remaining, 1.0)
+            ready, _, _ = select.select(watched, [], [], wait)
+            if read_fd in ready:
+                chunk = os.read(read_fd, 4096).decode(errors="replace")
+                if not chunk:
+                    watched.remove(read_fd)
+                for name in chunk.split():
+                    phase = name
+                    on_phase(name)
+            if pidfd in ready:
+                proc.wait()
+                return False, phase
+            if not ready:
+                tick()
+    finally:
+        os.close(pidfd)
+
+
+def _kill_group(proc: subprocess.Popen) -> None:
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    proc.wait()
+
+
+def _describe_exit(code: int | None) -> str:
+    if code is not None and code < 0:
+        try:
+            return f"killed by signal {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exit code {code}"
+
+
+def _reason(error: str, trace: str) -> str:
+    """The error line plus the innermost traceback lines that locate it."""
+    lines = [line for line in trace.strip().splitlines() if line.strip()]
+    where = "\n".join(lines[-TAIL_LINES:-1]) if len(lines) > 1 else ""
+    return f"{error}\n{where}".strip()
+
+
+def _tail(log: Path) -> str:
+    lines = log.read_text(errors="replace").splitlines()
+    return "\n".join(lines[-TAIL_LINES:])

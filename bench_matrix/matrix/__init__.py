@@ -1,0 +1,12 @@
+"""The matrix file: its schema, loading with located errors, and expansion into cells."""
+
+from bench_matrix.matrix.load import load_matrix
+from bench_matrix.matrix.spec import (
+    DatasetSpec,
+    Matrix,
+    ModelSpec,
+    Settings,
+    StrategySpec,
+)
+
+__all__ = ["DatasetSpec", "Matrix", "ModelSpec", "Settings", "StrategySpec", "load_matrix"]

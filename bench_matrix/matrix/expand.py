@@ -1,0 +1,98 @@
+"""Expand a matrix into planned cells: axes product, exclude, include, validity and machine probes."""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+from bench_matrix.cell import Cell, PlannedCell
+from bench_matrix.matrix.schema import STRATEGY_KINDS
+from bench_matrix.matrix.spec import Matrix, StrategySpec
+
+# (backend, framework, conversion kind, precision, target): what a backend is asked to judge
+VerdictKey = tuple[str, str, str, str, str]
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """A backend's answer for one combination: not valid (why), or valid but not runnable here (why)."""
+
+    invalid: str | None = None
+    skip: str | None = None
+
+
+@dataclass(frozen=True)
+class Expansion:
+    """Every planned cell plus how many combinations `exclude` removed."""
+
+    cells: tuple[PlannedCell, ...]
+    excluded: int
+
+    def by_state(self, state: str) -> list[PlannedCell]:
+        return [p for p in self.cells if p.state == state]
+
+
+def conversion_kind(strategy: StrategySpec) -> str:
+    """The post-training kind a backend performs (the last conversion step, or 'none')."""
+    kinds = [k for k in strategy.kinds() if STRATEGY_KINDS[k]["stage"] == "conversion"]
+    return kinds[-1] if kinds else "none"
+
+
+def training_kinds(strategy: StrategySpec) -> list[str]:
+    return [k for k in strategy.kinds() if STRATEGY_KINDS[k]["stage"] == "training"]
+
+
+def verdict_key(matrix: Matrix, cell: Cell) -> VerdictKey:
+    kind = conversion_kind(matrix.strategies[cell.strategy])
+    return (cell.backend, cell.framework, kind, cell.precision, cell.target)
+
+
+def combinations(matrix: Matrix, installed: Iterable[str]) -> tuple[list[Cell], int]:
+    """Candidate cells (axes product minus exclude, plus include) and the number excluded."""
+    backends = list(matrix.axes.get("backend") or installed)
+    frameworks = matrix.axes.get("framework")
+    cells: dict[Cell, None] = {}
+    excluded = 0
+    for model in matrix.models:
+        if frameworks and model.framework not in frameworks:
+            continue
+        for backend, strategy, precision, target in itertools.product(
+                backends, matrix.axes["strategy"], matrix.axes["precision"], matrix.axes["target"]):
+            cell = Cell(model.name, model.framework, backend, strategy, precision, target)
+            if any(sel.matches(cell.as_dict()) for sel in matrix.exclude):
+                excluded += 1
+            else:
+                cells.setdefault(cell)
+    for selector in matrix.include:
+        for cell in _included(matrix, dict(selector.values), backends):
+            cells.setdefault(cell)
+    return list(cells), excluded
+
+
+def plan(matrix: Matrix, cells: list[Cell], excluded: int, verdicts: Mapping[VerdictKey, Verdict]) -> Expansion:
+    """Judge each candidate: invalid (training not implemented, backend does not do it), skip, or run."""
+    planned = []
+    for cell in cells:
+        training = training_kinds(matrix.strategies[cell.strategy])
+        verdict = verdicts[verdict_key(matrix, cell)]
+        if training:
+            planned.append(PlannedCell(cell, "invalid", f"strategy {cell.strategy} fine-tunes the model "
+                                                        f"({', '.join(training)}); no training-aware implementation "
+                                                        f"for {cell.framework} models is installed yet"))
+        elif verdict.invalid:
+            planned.append(PlannedCell(cell, "invalid", verdict.invalid))
+        elif verdict.skip:
+            planned.append(PlannedCell(cell, "skip", verdict.skip))
+        else:
+            planned.append(PlannedCell(cell, "run"))
+    return Expansion(cells=tuple(planned), excluded=excluded)
+
+
+def _included(matrix: Matrix, fixed: dict[str, str], backends: list[str]) -> list[Cell]:
+    """An include entry fixes some keys; the others range over their axis."""
+    models = [m for m in matrix.models if fixed.get("model", m.name) == m.name
+              and fixed.get("framework", m.framework) == m.framework]
+    axis = {"backend": backends, **{k: list(v) for k, v in matrix.axes.items()}}
+    options = [[fixed[k]] if k in fixed else axis[k] for k in ("backend", "strategy", "precision", "target")]
+    return [Cell(m.name, m.framework, *combo) for m in models for combo in itertools.product(*options)]

@@ -1,0 +1,206 @@
+"""The matrix format as a JSON Schema: the single source for validation and for editors."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+FRAMEWORKS = ("pytorch", "onnx")
+PRECISIONS = ("fp32", "fp16", "int8")
+TARGETS = ("cpu", "cuda", "tensorrt")
+BUILTIN_MODELS = ("pilotnet", "pilotnet_jderobot")
+CELL_KEYS = ("model", "framework", "backend", "strategy", "precision", "target")
+
+_TRAINING = {
+    "epochs": {"type": "number", "exclusiveMinimum": 0, "description": "fine-tuning epochs"},
+    "fraction": {"type": "number", "exclusiveMinimum": 0, "maximum": 1,
+                 "description": "fraction of the training split used for fine-tuning"},
+    "lr": {"type": "number", "exclusiveMinimum": 0, "description": "learning rate"},
+    "batch_size": {"type": "integer", "minimum": 1},
+}
+_CALIBRATION = {
+    "calibration_samples": {"type": "integer", "minimum": 1,
+                            "description": "samples of the calibration split used to calibrate"},
+}
+_SPARSITY = {
+    "initial_sparsity": {"type": "number", "minimum": 0, "exclusiveMaximum": 1},
+    "final_sparsity": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
+    "schedule": {"enum": ["polynomial", "constant"]},
+    "scope": {"enum": ["local", "global"], "description": "per-layer (local) or whole-model (global) pruning"},
+    "conv_sparsity": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
+    "linear_sparsity": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
+}
+_CLUSTERS = {
+    "clusters": {"type": "integer", "minimum": 2, "description": "distinct values per weight tensor"},
+    "init": {"enum": ["kmeans++", "linear", "density", "random"]},
+    "cluster_epochs": {"type": "number", "exclusiveMinimum": 0},
+    "qat_epochs": {"type": "number", "exclusiveMinimum": 0},
+    "prune_epochs": {"type": "number", "exclusiveMinimum": 0},
+}
+
+# Strategy kinds: what is done to the model. "conversion" kinds happen inside a backend's convert;
+# "training" kinds fine-tune the source model first and are implemented per framework.
+STRATEGY_KINDS: dict[str, dict[str, Any]] = {
+    "none": {"stage": "conversion", "options": {},
+             "help": "the model as it is, converted to the backend's format"},
+    "ptq_dynamic": {"stage": "conversion", "options": {"per_channel": {"type": "boolean"}},
+                    "help": "post-training dynamic(-range) quantisation: int8 weights, activations quantised at run time"},
+    "ptq_static": {"stage": "conversion", "options": {
+        **_CALIBRATION,
+        "per_channel": {"type": "boolean"},
+        "io": {"enum": ["float", "int8"], "description": "float: float inputs/outputs (float fallback allowed); "
+                                                         "int8: full-integer model with int8 inputs and outputs"},
+        "method": {"enum": ["minmax", "entropy", "percentile"]},
+    }, "help": "post-training static quantisation calibrated on the calibration split"},
+    "qat": {"stage": "training", "options": {**_TRAINING, **_CALIBRATION},
+            "help": "quantisation-aware training, then integer conversion"},
+    "prune": {"stage": "training", "options": {**_TRAINING, **_SPARSITY},
+              "help": "magnitude (L1) weight pruning with fine-tuning"},
+    "cluster": {"stage": "training", "options": {**_TRAINING, **_CLUSTERS},
+                "help": "weight clustering (weight sharing) with fine-tuning"},
+    "cqat": {"stage": "training", "options": {**_TRAINING, **_CLUSTERS},
+             "help": "cluster-preserving quantisation-aware training"},
+    "pqat": {"stage": "training", "options": {**_TRAINING, **_SPARSITY, **_CLUSTERS},
+             "help": "prune-preserving quantisation-aware training"},
+    "pcqat": {"stage": "training", "options": {**_TRAINING, **_SPARSITY, **_CLUSTERS},
+              "help": "sparsity- and cluster-preserving quantisation-aware training"},
+}
+
+NAME = {"type": "string", "pattern": r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$",
+        "x-message": "use letters, digits and _ . + - (starting with a letter or digit)"}
+
+
+def _strategy_schema() -> dict[str, Any]:
+    branches = []
+    for kind, info in STRATEGY_KINDS.items():
+        branches.append({
+            "if": {"properties": {"kind": {"const": kind}}, "required": ["kind"]},
+            "then": {"properties": {"kind": {}, "description": {"type": "string"}, **info["options"]},
+                     "additionalProperties": False},
+        })
+    return {
+        "type": "object",
+        "description": "a named strategy: a kind with options, or a combination of steps applied in order",
+        "properties": {
+            "kind": {"enum": list(STRATEGY_KINDS)},
+            "steps": {"type": "array", "minItems": 2, "items": {"type": "string"}},
+            "description": {"type": "string"},
+        },
+        "oneOf": [{"required": ["kind"]}, {"required": ["steps"]}],
+        "x-message": "give either 'kind' (with its options) or 'steps' (a list of strategy names), not both",
+        "allOf": branches + [{"if": {"required": ["steps"]},
+                              "then": {"properties": {"steps": {}, "description": {}},
+                                       "additionalProperties": False}}],
+    }
+
+
+def _axis(values: dict[str, Any]) -> dict[str, Any]:
+    return {"type": "array", "minItems": 1, "uniqueItems": True, "items": values}
+
+
+_SELECTOR = {
+    "type": "object", "minProperties": 1, "additionalProperties": False,
+    "properties": {key: {"type": "string"} for key in CELL_KEYS},
+}
+
+SCHEMA: dict[str, Any] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "$id": "https://bench-matrix.dev/schema/matrix.schema.json",
+    "title": "bench-matrix matrix file",
+    "type": "object",
+    "additionalProperties": False,
+    "required": ["models", "dataset", "axes"],
+    "properties": {
+        "version": {"const": 1},
+        "name": {"type": "string"},
+        "description": {"type": "string"},
+        "models": {"type": "array", "minItems": 1, "items": {
+            "type": "object", "additionalProperties": False, "required": ["name", "framework"],
+            "properties": {
+                "name": NAME,
+                "framework": {"enum": list(FRAMEWORKS)},
+                "builtin": {"enum": list(BUILTIN_MODELS)},
+                "file": {"type": "string", "description": "TorchScript .pt/.pth, torch.export .pt2, or .onnx"},
+                "factory": {"type": "string", "pattern": r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$",
+                            "x-message": "write it as 'package.module:function'"},
+                "weights": {"type": "string", "description": "state_dict file for 'factory'"},
+                "python_path": {"type": "array", "items": {"type": "string"}},
+                "layout": {"enum": ["nchw", "nhwc"]},
+                "training": {"type": "object", "additionalProperties": False, "properties": {
+                    "epochs": {"type": "integer", "minimum": 1},
+                    "batch_size": {"type": "integer", "minimum": 1},
+                    "lr": {"type": "number", "exclusiveMinimum": 0}}},
+            },
+            "oneOf": [{"required": ["builtin"]}, {"required": ["file"]}, {"required": ["factory"]}],
+            "x-message": "give exactly one of 'builtin', 'file' or 'factory' (with 'weights')",
+        }},
+        "dataset": {
+            "type": "object", "additionalProperties": False,
+            "properties": {
+                "builtin": {"enum": ["driving"]},
+                "npz": {"type": "string"},
+                "folder": {"oneOf": [{"type": "string"}, {"type": "array", "minItems": 1,
+                                                          "items": {"type": "string"}}]},
+                "samples": {"type": "integer", "minimum": 10},
+                "circuits": {"type": "integer", "minimum": 3},
+                "seed": {"type": "integer"},
+                "preprocess": {"type": "object", "additionalProperties": False, "properties": {
+                    "crop": {"type": "object", "additionalProperties": False, "properties": {
+                        side: {"type": "integer", "minimum": 0} for side in ("top", "bottom", "left", "right")}},
+                    "resize": {"type": "array", "items": {"type": "integer", "minimum": 1},
+                               "minItems": 2, "maxItems": 2, "description": "[height, width]"},
+                    "scale": {"type": "number", "exclusiveMinimum": 0},
+                    "mean": {"type": "array", "items": {"type": "number"}, "minItems": 1},
+                    "std": {"type": "array", "items": {"type": "number", "exclusiveMinimum": 0}, "minItems": 1},
+                }},
+                "labels": {"type": "object", "additionalProperties": False, "properties": {
+                    "columns": {"type": "array", "items": {"type": "string"}, "minItems": 1},
+                    "offset": {"type": "array", "items": {"type": "number"}, "minItems": 1},
+                    "scale": {"type": "array", "items": {"type": "number", "exclusiveMinimum": 0},
+                              "minItems": 1},
+                }},
+                "split": {"type": "object", "additionalProperties": False, "properties": {
+                    "train": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
+                    "calibration": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
+                    "test": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
+                    "by": {"enum": ["auto", "group", "block", "random"]},
+                }},
+            },
+            "oneOf": [{"required": ["builtin"]}, {"required": ["npz"]}, {"required": ["folder"]}],
+            "x-message": "give exactly one of 'builtin', 'npz' or 'folder'",
+        },
+        "strategies": {"type": "object", "additionalProperties": _strategy_schema(),
+                       "propertyNames": {"pattern": NAME["pattern"]}},
+        "axes": {
+            "type": "object", "additionalProperties": False,
+            "required": ["strategy", "precision", "target"],
+            "properties": {
+                "framework": _axis({"enum": list(FRAMEWORKS)}),
+                "backend": _axis({"type": "string"}),
+                "strategy": _axis({"type": "string"}),
+                "precision": _axis({"enum": list(PRECISIONS)}),
+                "target": _axis({"enum": list(TARGETS)}),
+            },
+        },
+        "include": {"type": "array", "items": _SELECTOR},
+        "exclude": {"type": "array", "items": _SELECTOR},
+        "settings": {"type": "object", "additionalProperties": False, "properties": {
+            "warmup_iterations": {"type": "integer", "minimum": 0},
+            "warmup_s": {"type": "number", "minimum": 0},
+            "min_iterations": {"type": "integer", "minimum": 1},
+            "min_time_s": {"type": "number", "minimum": 0},
+            "max_time_s": {"type": "number", "exclusiveMinimum": 0},
+            "batch_size": {"type": "integer", "minimum": 1},
+            "throughput_time_s": {"type": "number", "exclusiveMinimum": 0},
+            "threads": {"type": "integer", "minimum": 1},
+            "timeout_s": {"type": "number", "exclusiveMinimum": 0},
+            "seed": {"type": "integer"},
+            "eval_samples": {"type": "integer", "minimum": 1},
+        }},
+    },
+}
+
+
+def schema_json() -> str:
+    """The schema as published in docs/matrix.schema.json."""
+    return json.dumps(SCHEMA, indent=2) + "\n"

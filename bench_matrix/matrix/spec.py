@@ -1,0 +1,148 @@
+"""Typed, validated contents of a matrix file."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+@dataclass(frozen=True)
+class TrainingSpec:
+    """How a built-in reference model is trained on the dataset's training split."""
+
+    epochs: int = 8
+    batch_size: int = 64
+    lr: float = 1e-3
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """One model of the matrix and where it comes from (exactly one of builtin, file, factory)."""
+
+    name: str
+    framework: str
+    builtin: str | None = None
+    file: Path | None = None
+    factory: str | None = None
+    weights: Path | None = None
+    python_path: tuple[Path, ...] = ()
+    layout: str = "nchw"
+    training: TrainingSpec = field(default_factory=TrainingSpec)
+
+    @property
+    def source_kind(self) -> str:
+        return "builtin" if self.builtin else "file" if self.file else "factory"
+
+
+@dataclass(frozen=True)
+class Preprocess:
+    """Preprocessing applied identically to every split: crop, resize, scale, normalise."""
+
+    crop: tuple[int | None, int | None, int | None, int | None] | None = None  # top, bottom, left, right
+    resize: tuple[int, int] | None = None  # height, width
+    scale: float = 1.0 / 255.0
+    mean: tuple[float, ...] | None = None
+    std: tuple[float, ...] | None = None
+
+
+@dataclass(frozen=True)
+class LabelSpec:
+    """Which label columns to read and how they are normalised: y' = (y - offset) / scale."""
+
+    columns: tuple[str, ...] = ("v", "w")
+    offset: tuple[float, ...] | None = None
+    scale: tuple[float, ...] | None = None
+
+
+@dataclass(frozen=True)
+class SplitSpec:
+    """Fractions of the three disjoint splits and how samples are assigned to them."""
+
+    train: float = 0.7
+    calibration: float = 0.1
+    test: float = 0.2
+    by: str = "auto"  # auto: by group when the data has 3+ groups (circuits, recordings), else block
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    """The dataset: built-in synthetic driving, an .npz with x and y, or DeepLearningStudio folders."""
+
+    kind: str  # builtin | npz | folder
+    paths: tuple[Path, ...] = ()
+    samples: int = 4000
+    circuits: int = 10
+    seed: int = 0
+    preprocess: Preprocess = field(default_factory=Preprocess)
+    labels: LabelSpec = field(default_factory=LabelSpec)
+    split: SplitSpec = field(default_factory=SplitSpec)
+
+
+@dataclass(frozen=True)
+class StrategySpec:
+    """A strategy: one kind with its options, or a combination of named steps."""
+
+    name: str
+    kind: str | None
+    options: dict[str, Any] = field(default_factory=dict)
+    steps: tuple["StrategySpec", ...] = ()
+
+    def kinds(self) -> tuple[str, ...]:
+        """Kinds applied in order (a single kind, or each step's kinds)."""
+        if self.steps:
+            return tuple(k for step in self.steps for k in step.kinds())
+        return (self.kind,) if self.kind else ()
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "kind": self.kind, "options": dict(sorted(self.options.items())),
+                "steps": [s.to_dict() for s in self.steps]}
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Measurement settings shared by every cell."""
+
+    warmup_iterations: int = 20
+    warmup_s: float = 0.5
+    min_iterations: int = 200
+    min_time_s: float = 2.0
+    max_time_s: float = 60.0
+    batch_size: int = 32
+    throughput_time_s: float = 1.0
+    threads: int = 1
+    timeout_s: float = 600.0
+    seed: int = 0
+    eval_samples: int | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class Selector:
+    """A partial cell (some of model, framework, backend, strategy, precision, target)."""
+
+    values: tuple[tuple[str, str], ...]
+
+    def matches(self, cell: dict[str, str]) -> bool:
+        return all(cell.get(key) == value for key, value in self.values)
+
+
+@dataclass(frozen=True)
+class Matrix:
+    """A loaded, validated matrix file."""
+
+    path: Path
+    name: str
+    models: tuple[ModelSpec, ...]
+    dataset: DatasetSpec
+    strategies: dict[str, StrategySpec]
+    axes: dict[str, tuple[str, ...]]
+    include: tuple[Selector, ...]
+    exclude: tuple[Selector, ...]
+    settings: Settings
+    lines: dict[tuple, int] = field(default_factory=dict, compare=False, repr=False)
+
+    def model(self, name: str) -> ModelSpec:
+        return next(m for m in self.models if m.name == name)

@@ -1,0 +1,1 @@
+"""How each metric is measured: timing loops, statistics, sizes, accuracy, environment."""

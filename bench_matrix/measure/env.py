@@ -1,0 +1,53 @@
+"""The environment a result was measured in: host, CPU, cores, memory, GPUs, Python and library versions."""
+
+from __future__ import annotations
+
+import os
+import platform
+import sys
+from importlib.metadata import PackageNotFoundError, version
+
+from bench_matrix import __version__
+from bench_matrix.hardware import nvidia_gpus
+
+LIBRARIES = ("numpy", "torch", "onnx", "onnxruntime", "onnxruntime-gpu", "tensorflow", "tensorflow-cpu",
+             "tf-keras", "tensorflow-model-optimization", "ai-edge-litert", "tensorrt", "torch-tensorrt")
+
+
+def cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def memory_gb() -> float | None:
+    try:
+        pages, size = os.sysconf("SC_PHYS_PAGES"), os.sysconf("SC_PAGE_SIZE")
+        return round(pages * size / 2**30, 1)
+    except (ValueError, OSError):
+        return None
+
+
+def library_versions() -> dict[str, str]:
+    found = {}
+    for name in LIBRARIES:
+        try:
+            found[name] = version(name)
+        except PackageNotFoundError:
+            continue
+    return found
+
+
+def capture() -> dict[str, object]:
+    """A snapshot recorded with every result."""
+    return {
+        "host": platform.node(), "os": f"{platform.system()} {platform.release()}", "cpu": cpu_model(),
+        "cores": os.cpu_count(), "cores_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "memory_gb": memory_gb(), "gpus": list(nvidia_gpus()), "python": sys.version.split()[0],
+        "libraries": library_versions(), "bench_matrix": __version__,
+    }

@@ -1,0 +1,97 @@
+"""Terminal views of a plan (`bench-matrix plan`) and of the installed backends (`bench-matrix backends`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from bench_matrix.backends.registry import available
+from bench_matrix.launcher import run_job
+from bench_matrix.matrix.schema import TARGETS
+from bench_matrix.matrix.spec import Matrix
+from bench_matrix.runner import PROBE_TIMEOUT_S, Filters, Planned, Runner
+from bench_matrix.store import ResultStore
+from bench_matrix.workspace import Workspace
+
+STATE_STYLE = {"run": "[green]will run[/]", "stored": "[cyan]stored[/]", "skip": "[yellow]skipped[/]",
+               "invalid": "[dim]not valid[/]"}
+
+
+def show_plan(console: Console, matrix: Matrix, ws: Workspace, planned: Planned, filters: Filters,
+              results: Path | None) -> None:
+    """Cells that will run, are stored, or are skipped (why); then the combinations that are not valid (why)."""
+    store = ResultStore(results) if results and results.is_file() else None
+    runner = Runner(matrix, ws, store, console) if store else None
+    cells = [p for p in planned.expansion.cells if filters.keep(p.cell)]
+    table = Table(title=f"cells of {matrix.path}")
+    for column in ("model", "backend", "strategy", "precision", "target", "state", "reason"):
+        table.add_column(column, overflow="fold")
+    counts = {"run": 0, "stored": 0, "skip": 0, "invalid": 0}
+    for p in sorted((p for p in cells if p.state != "invalid"), key=lambda p: (p.state, p.cell)):
+        state = "stored" if p.state == "run" and runner and runner.is_done(p.cell) else p.state
+        counts[state] += 1
+        c = p.cell
+        table.add_row(c.model, c.backend, c.strategy, c.precision, c.target, STATE_STYLE[state], escape(p.reason or ""))
+    console.print(table)
+    invalid: dict[tuple[str, ...], list[str]] = {}
+    for p in cells:
+        if p.state == "invalid":
+            counts["invalid"] += 1
+            c = p.cell
+            invalid.setdefault((c.backend, c.strategy, c.precision, c.target, p.reason or ""), []).append(c.model)
+    if invalid:
+        rejected = Table(title="combinations that are not valid (not run, not stored)")
+        for column in ("backend", "strategy", "precision", "target", "why", "models"):
+            rejected.add_column(column, overflow="fold")
+        for (backend, strategy, precision, target, why), models in sorted(invalid.items()):
+            rejected.add_row(backend, strategy, precision, target, escape(why), str(len(models)))
+        console.print(rejected)
+    console.print(f"{counts['run']} will run, {counts['stored']} already stored, {counts['skip']} will be skipped, "
+                  f"{counts['invalid']} not valid, {planned.expansion.excluded} removed by exclude")
+    if store:
+        store.close()
+
+
+def show_backends(console: Console, ws: Workspace) -> None:
+    """Every installed backend, its package, its capabilities, and per target whether this machine runs it."""
+    names = list(available())
+    outcome = run_job({"mode": "probe", "backends": names, "keys": "declared"}, ws.root / "jobs", ws.logs / "probe.log",
+                      PROBE_TIMEOUT_S)
+    if not outcome.ok:
+        console.print(f"[red]probing failed:[/] {outcome.error}")
+        return
+    described, verdicts = outcome.value["backends"], outcome.value["verdicts"]
+    table = Table(title="installed backends", show_lines=True)
+    for column in ("backend", "package", "supports (strategy/precision/target)", *TARGETS):
+        table.add_column(column, overflow="fold")
+    entries = available()
+    for name in names:
+        info = described[name]
+        if info.get("error"):
+            table.add_row(name, entries[name].distribution, "", *([f"[red]{escape(info['error'])}[/]"] * len(TARGETS)))
+            continue
+        supports = "\n".join(f"{'/'.join(s['frameworks'])}: {', '.join(s['strategies'])} · "
+                             f"{', '.join(s['precisions'])} · {', '.join(s['targets'])}" for s in info["supports"])
+        cells = [_target_status(name, target, verdicts) for target in TARGETS]
+        table.add_row(f"[bold]{name}[/]\n{escape(info['description'])}", entries[name].distribution, supports, *cells)
+    console.print(table)
+
+
+def _target_status(backend: str, target: str, verdicts: dict[str, dict]) -> str:
+    """ready / not supported / the skip reasons, with the precisions they concern."""
+    mine = {key.split("|")[3]: v["skip"] for key, v in verdicts.items()
+            if key.split("|")[0] == backend and key.split("|")[4] == target}
+    if not mine:
+        return "[dim]not supported[/]"
+    blocked = {}
+    for precision, reason in sorted(mine.items()):
+        if reason:
+            blocked.setdefault(reason, []).append(precision)
+    if not blocked:
+        return "[green]ready[/]"
+    lines = [f"{'/'.join(ps)}: {escape(reason)}" for reason, ps in blocked.items()]
+    ready = [p for p, r in mine.items() if not r]
+    return ("[green]ready[/] for " + "/".join(ready) + "; " if ready else "") + "[yellow]" + "\n".join(lines) + "[/]"

@@ -1,0 +1,67 @@
+"""Progress while a matrix runs: cells done of total, current cell and phase, elapsed, estimate."""
+
+from __future__ import annotations
+
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+from bench_matrix.cell import Cell
+from bench_matrix.store import CellRecord
+
+
+class RunProgress:
+    """A progress bar redrawn only on events and idle ticks, never while a cell measures."""
+
+    def __init__(self, console: Console, total: int):
+        self.console = console
+        self._progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                  TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
+                                  console=console, auto_refresh=False, transient=True)
+        self._task = self._progress.add_task("starting", total=max(total, 1))
+        self._current = ""
+
+    def __enter__(self) -> "RunProgress":
+        self._progress.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._progress.stop()
+
+    def step(self, text: str) -> None:
+        """A preparation step (dataset, training) or a cell began."""
+        self._current = text
+        self._progress.update(self._task, description=text)
+        self._progress.refresh()
+
+    def phase(self, name: str) -> None:
+        self._progress.update(self._task, description=f"{self._current} · {name}")
+        self._progress.refresh()
+
+    def tick(self) -> None:
+        self._progress.refresh()
+
+    def finished(self, record: CellRecord, advance: bool = True) -> None:
+        """Print the finished cell's key figures above the bar."""
+        self._progress.console.print(describe(record))
+        if advance:
+            self._progress.advance(self._task)
+        self._progress.refresh()
+
+    def note(self, text: str) -> None:
+        self._progress.console.print(text)
+        self._progress.refresh()
+
+
+def describe(record: CellRecord) -> str:
+    """One line: status mark, cell, and its headline numbers or reason."""
+    cell: Cell = record.cell
+    name = f"{cell.model} · {cell.label}"
+    if record.status == "ok":
+        m = record.metrics
+        return (f"[green]✓[/] {name}  p50 {m['latency_ms']['p50']:.3g} ms  p99 {m['latency_ms']['p99']:.3g} ms  "
+                f"{m['throughput_sps']:.0f} samples/s  MSE {m['mse']:.4g}  {m['size_bytes'] / 2**20:.2f} MiB")
+    last = (record.reason or "").strip().splitlines()
+    mark = "[yellow]–[/] skipped" if record.status == "skipped" else "[red]✗[/] failed"
+    text = last[0] if record.status == "skipped" and last else (last[-1] if last else "")
+    return f"{mark} {escape(name)}: {escape(text)}"

@@ -1,0 +1,174 @@
+"""Run a matrix: plan it, prepare data and models, run each cell in its own processes, store each result."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from bench_matrix import __version__, data
+from bench_matrix.backends.registry import available
+from bench_matrix.cell import Cell, PlannedCell
+from bench_matrix.errors import UserError
+from bench_matrix.launcher import Outcome, run_job
+from bench_matrix.matrix.expand import Expansion, Verdict, combinations, plan, verdict_key
+from bench_matrix.matrix.spec import Matrix, ModelSpec
+from bench_matrix.measure import env as environment
+from bench_matrix.progress import RunProgress
+from bench_matrix.store import CellRecord, ResultStore
+from bench_matrix.workspace import Workspace, digest, file_sha256
+
+PREPARE_TIMEOUT_S = 4 * 3600.0
+PROBE_TIMEOUT_S = 300.0
+
+
+@dataclass(frozen=True)
+class Filters:
+    """Cell selection from the command line: each key keeps cells whose value is in the set."""
+
+    values: dict[str, frozenset[str]] = field(default_factory=dict)
+
+    def keep(self, cell: Cell) -> bool:
+        return all(getattr(cell, key) in allowed for key, allowed in self.values.items())
+
+
+@dataclass(frozen=True)
+class Planned:
+    """The expansion plus what the probe learned about each backend."""
+
+    expansion: Expansion
+    backends: dict[str, Any]
+
+    def baseline_backend(self, framework: str) -> str | None:
+        return next((n for n, b in self.backends.items() if framework in b.get("baseline_for", [])), None)
+
+
+def resolve(matrix: Matrix, workspace: Workspace) -> Planned:
+    """Expand the matrix and judge every combination in a child process (imports stay out of the parent)."""
+    installed = list(available())
+    cells, excluded = combinations(matrix, installed)
+    keys = sorted({verdict_key(matrix, c) for c in cells})
+    names = sorted(set(installed) | {k[0] for k in keys})
+    outcome = run_job({"mode": "probe", "backends": names, "keys": keys}, workspace.root / "jobs",
+                      workspace.logs / "probe.log", PROBE_TIMEOUT_S)
+    if not outcome.ok:
+        raise UserError(f"probing the installed backends failed: {outcome.error}")
+    verdicts = {tuple(k.split("|")): Verdict(**v) for k, v in outcome.value["verdicts"].items()}
+    return Planned(plan(matrix, cells, excluded, verdicts), outcome.value["backends"])
+
+
+class Runner:
+    """Runs the runnable cells of a plan one at a time and writes each record as soon as it ends."""
+
+    def __init__(self, matrix: Matrix, workspace: Workspace, store: ResultStore, progress_console: Any):
+        self.matrix, self.ws, self.store, self.console = matrix, workspace, store, progress_console
+        self.dataset_fingerprint = data.fingerprint(matrix.dataset)
+        self._dataset: dict[str, Any] | None = None
+
+    def run(self, planned: Planned, filters: Filters, force: bool) -> dict[str, int]:
+        chosen = [p for p in planned.expansion.cells if p.state != "invalid" and filters.keep(p.cell)]
+        if not chosen:
+            raise UserError("no cell of the matrix matches the filters (see `bench-matrix plan`)")
+        todo = [p for p in chosen if p.state == "run" and (force or not self.is_done(p.cell))]
+        counts = {"ok": 0, "skipped": 0, "failed": 0, "cached": len([p for p in chosen if p.state == "run"]) - len(todo)}
+        begin, started = time.monotonic(), _now()
+        with RunProgress(self.console, len(todo)) as progress:
+            for p in chosen:
+                if p.state == "skip" and not self.is_done(p.cell):  # never replace a result measured elsewhere
+                    record = self._record(p.cell, "skipped", p.reason, _now())
+                    self.store.put(record)
+                    progress.finished(record, advance=False)
+                    counts["skipped"] += 1
+            for model in self.matrix.models:
+                cells = [p for p in todo if p.cell.model == model.name]
+                if cells:
+                    for record in self._run_model(model, cells, planned, progress):
+                        counts[record.status] += 1
+        self.store.put_fact("run", "last", {"matrix": str(self.matrix.path), "started_at": started,
+                                            "finished_at": _now(), "wall_s": round(time.monotonic() - begin, 1),
+                                            "counts": counts})
+        return counts
+
+    def _run_model(self, model: ModelSpec, cells: list[PlannedCell], planned: Planned, progress: RunProgress):
+        prepared = self._prepare(model, planned, progress)
+        for p in cells:
+            started = _now()
+            progress.step(f"{model.name} · {p.cell.label}")
+            if not prepared.ok:
+                record = self._record(p.cell, "failed", f"preparing model {model.name} failed: {prepared.error}", started)
+            else:
+                record = self._run_cell(p.cell, model, prepared.value, progress, started)
+            self.store.put(record)
+            progress.finished(record)
+            yield record
+
+    def _prepare(self, model: ModelSpec, planned: Planned, progress: RunProgress) -> Outcome:
+        settings, common = self.matrix.settings, {"workspace": str(self.ws.root)}
+        if self._dataset is None:
+            progress.step("preparing dataset")
+            outcome = self._job({"mode": "prepare_dataset", "dataset": self.matrix.dataset, **common},
+                                "dataset", PREPARE_TIMEOUT_S, progress)
+            if not outcome.ok:
+                raise UserError(f"dataset: {outcome.error}") if outcome.user_error else RuntimeError(outcome.error)
+            self._dataset = outcome.value
+            self.store.put_fact("dataset", "info", outcome.value["info"])
+        baseline = planned.baseline_backend(model.framework)
+        if baseline is None:
+            return Outcome(error=f"no installed backend computes the fp32 baseline of {model.framework} models")
+        progress.step(f"preparing model {model.name}")
+        outcome = self._job({"mode": "prepare_model", "model": model, "dataset_dir": self._dataset["dir"],
+                             "dataset_info": self._dataset["info"], "preprocess": self.matrix.dataset.preprocess,
+                             "settings": settings, "baseline_backend": baseline, **common},
+                            f"model-{model.name}", PREPARE_TIMEOUT_S, progress)
+        if outcome.ok:
+            self.store.put_fact(f"model:{model.name}", "info", outcome.value["info"])
+        return outcome
+
+    def _run_cell(self, cell: Cell, model: ModelSpec, prepared: dict[str, Any], progress: RunProgress,
+                  started: str) -> CellRecord:
+        settings = self.matrix.settings
+        job = {"cell": cell, "source": prepared["source"], "strategy": self.matrix.strategies[cell.strategy],
+               "dataset_dir": self._dataset["dir"], "dataset_info": self._dataset["info"],
+               "preprocess": self.matrix.dataset.preprocess, "layout": model.layout, "settings": settings,
+               "workspace": str(self.ws.root), "reference": prepared["reference"]}
+        deadline = time.monotonic() + settings.timeout_s
+        log = self.ws.logs / f"{cell.key.replace('/', '__')}.log"
+        converted = run_job({**job, "mode": "convert"}, self.ws.root / "jobs", log, settings.timeout_s,
+                            settings.threads, progress.phase, progress.tick)
+        if not converted.ok:
+            return self._record(cell, "failed", f"convert: {converted.error}", started)
+        measured = run_job({**job, **converted.value, "mode": "measure"}, self.ws.root / "jobs", log,
+                           max(deadline - time.monotonic(), 1.0), settings.threads, progress.phase, progress.tick)
+        if not measured.ok:
+            return self._record(cell, "failed", f"measure: {measured.error}", started,
+                                artifact=converted.value["artifact_dir"])
+        return self._record(cell, "ok", None, started, metrics=measured.value["metrics"],
+                            env=measured.value["env"], artifact=converted.value["artifact_dir"] + "/model")
+
+    def _job(self, job: dict[str, Any], log_name: str, timeout: float, progress: RunProgress) -> Outcome:
+        return run_job(job, self.ws.root / "jobs", self.ws.logs / f"{log_name}.log", timeout,
+                       on_phase=progress.phase, tick=progress.tick)
+
+    def is_done(self, cell: Cell) -> bool:
+        record = self.store.get(cell)
+        return record is not None and record.status == "ok" and record.fingerprint == self.fingerprint(cell)
+
+    def fingerprint(self, cell: Cell) -> str:
+        """Everything that determines a cell's result; a stored record with another fingerprint is stale."""
+        model = self.matrix.model(cell.model)
+        files = [file_sha256(p) for p in (model.file, model.weights) if p is not None]
+        return digest({"cell": cell.key, "model": asdict(model), "files": files, "dataset": self.dataset_fingerprint,
+                       "strategy": self.matrix.strategies[cell.strategy].to_dict(),
+                       "settings": self.matrix.settings.to_dict(), "version": __version__})
+
+    def _record(self, cell: Cell, status: str, reason: str | None, started: str, metrics: dict | None = None,
+                env: dict | None = None, artifact: str | None = None) -> CellRecord:
+        return CellRecord(cell=cell, status=status, reason=reason, metrics=metrics or {}, artifact_path=artifact,
+                          env=env or environment.capture(), started_at=started, finished_at=_now(),
+                          fingerprint=self.fingerprint(cell), matrix=str(self.matrix.path))
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")

@@ -1,0 +1,43 @@
+"""The pristine source model of a cell: where it lives, its format, its content hash, and how to load it."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+FORMATS = ("torchscript", "torch_export", "state_dict", "onnx")
+
+
+@dataclass(frozen=True)
+class SourceModel:
+    """A model file as the user (or the built-in trainer) gave it; every cell starts from this."""
+
+    name: str
+    framework: str
+    format: str  # one of FORMATS
+    path: Path
+    sha256: str
+    input_shape: tuple[int, ...]  # one sample in the model's layout, without the batch dimension
+    factory: str | None = None  # 'module:function' building the module a state_dict belongs to
+    python_path: tuple[str, ...] = ()
+
+    def load(self) -> Any:
+        """A fresh framework object (never shared between strategies): nn.Module, ScriptModule, or ONNX path."""
+        if self.framework == "pytorch":
+            from bench_matrix.sources.pytorch import load_module
+
+            return load_module(self)
+        if self.framework == "onnx":
+            return self.path
+        raise ValueError(f"no loader for framework {self.framework!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        data = asdict(self)
+        data["path"] = str(self.path)
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "SourceModel":
+        return cls(**{**data, "path": Path(data["path"]), "input_shape": tuple(data["input_shape"]),
+                      "python_path": tuple(data.get("python_path", ()))})

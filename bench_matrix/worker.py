@@ -1,0 +1,63 @@
+"""Entry point of every child process: `python -m bench_matrix.worker JOB.pickle` runs one job."""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import signal
+import sys
+import traceback
+import warnings
+from pathlib import Path
+
+from bench_matrix.errors import UserError
+
+
+def phase(name: str) -> None:
+    """Tell the parent which phase began (it stays silent while we measure)."""
+    fd = os.environ.get("BENCH_MATRIX_PHASE_FD")
+    if fd:
+        try:
+            os.write(int(fd), f"{name}\n".encode())
+        except OSError:
+            pass
+
+
+def die_with_parent() -> None:
+    """Ask Linux to kill this process when the parent dies, so a killed run leaves nothing measuring."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() == 1:  # the parent is already gone
+        os._exit(1)
+
+
+def main(argv: list[str]) -> int:
+    die_with_parent()
+    job_path = Path(argv[0])
+    job = pickle.loads(job_path.read_bytes())  # written by our own parent process, never user input
+    result_path = Path(job["result_path"])
+    warnings.filterwarnings("ignore", category=DeprecationWarning)
+    try:
+        from bench_matrix import jobs
+
+        result = {"ok": True, "value": getattr(jobs, job["mode"])(job)}
+        code = 0
+    except Exception as exc:  # everything a job raises is reported to the parent as the cell's reason
+        traceback.print_exc()
+        result = {"ok": False, "user_error": isinstance(exc, UserError),
+                  "error": f"{type(exc).__name__}: {exc}" if not isinstance(exc, UserError) else str(exc),
+                  "traceback": traceback.format_exc()}
+        code = 1
+    tmp = result_path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(result, default=str))
+    os.replace(tmp, result_path)
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
