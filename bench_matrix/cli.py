@@ -24,11 +24,11 @@ def main(argv: list[str] | None = None) -> int:
     except MatrixError as exc:
         errors.print(f"[bold red]error:[/] {len(exc.problems)} problem(s) in the matrix file:", highlight=False)
         for problem in exc.problems:
-            errors.print(f"  {problem}", markup=False, highlight=False)
+            errors.print(f"  {problem}", markup=False, highlight=False, soft_wrap=True)
         return exc.exit_code
     except UserError as exc:
         errors.print("[bold red]error:[/] ", end="", highlight=False)
-        errors.print(str(exc), markup=False, highlight=False)
+        errors.print(str(exc), markup=False, highlight=False, soft_wrap=True)
         return exc.exit_code
     except KeyboardInterrupt:
         errors.print("\n[yellow]interrupted.[/] Every finished cell is saved; run the same command again to "

@@ -66,8 +66,9 @@ def run_job(job: dict[str, Any], workdir: Path, log: Path, timeout_s: float, thr
             result = json.loads(result_path.read_text())
             if result["ok"]:
                 return Outcome(value=result["value"])
-            return Outcome(error=_reason(result["error"], result.get("traceback", "")),
-                           user_error=result.get("user_error", False))
+            if result.get("user_error"):  # the user's mistake: the message alone says what to fix
+                return Outcome(error=result["error"], user_error=True)
+            return Outcome(error=_reason(result["error"], result.get("traceback", "")))
         return Outcome(error=f"the process died ({_describe_exit(proc.returncode)}) in phase '{last_phase}'; "
                              f"last lines of {log}:\n{_tail(log)}")
     finally:

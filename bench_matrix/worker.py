@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import pickle
@@ -36,6 +37,12 @@ def die_with_parent() -> None:
         os._exit(1)
 
 
+def _function(mode: str):
+    """A job function: a name in bench_matrix.jobs, or 'module:function'."""
+    module, _, name = mode.rpartition(":")
+    return getattr(importlib.import_module(module or "bench_matrix.jobs"), name)
+
+
 def main(argv: list[str]) -> int:
     die_with_parent()
     job_path = Path(argv[0])
@@ -43,9 +50,7 @@ def main(argv: list[str]) -> int:
     result_path = Path(job["result_path"])
     warnings.filterwarnings("ignore", category=DeprecationWarning)
     try:
-        from bench_matrix import jobs
-
-        result = {"ok": True, "value": getattr(jobs, job["mode"])(job)}
+        result = {"ok": True, "value": _function(job["mode"])(job)}
         code = 0
     except Exception as exc:  # everything a job raises is reported to the parent as the cell's reason
         traceback.print_exc()

@@ -18,15 +18,15 @@ def load_module(source: "SourceModel") -> "torch.nn.Module":
 
     if source.format == "torchscript":
         module = torch.jit.load(str(source.path), map_location="cpu")
-    elif source.format == "torch_export":
-        module = torch.export.load(str(source.path)).module()
+    elif source.format == "torch_export":  # exported in inference mode already; its module refuses .eval()
+        return torch.export.load(str(source.path)).module()
     elif source.format == "state_dict":
         module = build_from_factory(source.factory or "", source.python_path)
         state = torch.load(str(source.path), map_location="cpu", weights_only=True)
         module.load_state_dict(state)
     else:
         raise ValueError(f"{source.path}: format {source.format!r} is not a PyTorch format")
-    return module.eval() if hasattr(module, "eval") else module
+    return module.eval()
 
 
 def build_from_factory(factory: str, python_path: tuple[str, ...] = ()) -> "torch.nn.Module":

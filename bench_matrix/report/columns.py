@@ -1,0 +1,169 @@
+"""Number formatting, the results-table columns and the text lines shared by the terminal and Markdown reports."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from bench_matrix.report.summary import ModelSummary, Report, Row, metric, number, p50
+
+DASH = "—"
+MIB = 2**20
+DIFFERENT_ENVIRONMENTS = "cells were not all measured in the same environment: compare their numbers with care."
+
+
+def sig(value: float | None, digits: int) -> str:
+    """`value` to `digits` significant digits, positional for 1e-4..1e6 (whole numbers kept whole), else exponent."""
+    if value is None:
+        return DASH
+    if value == 0 or not math.isfinite(value):
+        return "0" if value == 0 else str(value)
+    magnitude = math.floor(math.log10(abs(value)))
+    if -4 <= magnitude < 6:
+        return f"{value:.{max(digits - 1 - magnitude, 0)}f}"
+    return f"{value:.{digits - 1}e}"
+
+
+def signed(value: float | None, digits: int) -> str:
+    """Like `sig` with an explicit sign; exactly zero is "0"."""
+    return sig(value, digits) if value is None or value <= 0 else "+" + sig(value, digits)
+
+
+def fixed(value: float | None, decimals: int) -> str:
+    return DASH if value is None else f"{value:.{decimals}f}"
+
+
+def mib(size_bytes: float | None) -> str:
+    return fixed(None if size_bytes is None else size_bytes / MIB, 2)
+
+
+def times(value: float | None) -> str:
+    return DASH if value is None else f"{value:.2f}×"
+
+
+@dataclass(frozen=True)
+class Column:
+    """One results-table column: header ("\n" breaks it in the terminal), footnote, renderer and group.
+
+    A narrow terminal splits the table by group; columns of group "" are in every part."""
+
+    header: str
+    note: str
+    render: Callable[[Row], str]
+    group: str
+
+    @property
+    def numeric(self) -> bool:
+        return bool(self.group)
+
+
+def _method(row: Row) -> str:
+    return row.record.cell.label + (" (baseline)" if row.is_baseline else "")
+
+
+def _latency(stat: str) -> Callable[[Row], str]:
+    return lambda row: sig(metric(row.record, "latency_ms", stat), 3)
+
+
+SIZE, ACCURACY, SPEED = "size", "accuracy", "speed"
+COLUMNS: tuple[Column, ...] = (
+    Column("Method", "backend, strategy and precision (and target when not cpu) of the cell.", _method, ""),
+    Column("Size\nMiB", "size of the converted model artifact on disk, in MiB (2^20 bytes).",
+           lambda r: mib(metric(r.record, "size_bytes")), SIZE),
+    Column("gzip\nMiB", "size of the artifact after gzip, in MiB: what weight sharing and pruning save in transfer.",
+           lambda r: mib(metric(r.record, "size_gzip_bytes")), SIZE),
+    Column("Size\nratio", "baseline size ÷ cell size: above 1× the cell's artifact is that many times smaller.",
+           lambda r: times(r.size_ratio), SIZE),
+    Column("MSE", "mean squared error on the normalised labels of the test split.",
+           lambda r: sig(metric(r.record, "mse"), 4), ACCURACY),
+    Column("ΔMSE", "cell MSE minus baseline MSE (positive = less accurate than the baseline).",
+           lambda r: signed(r.mse_delta, 3), ACCURACY),
+    Column("MAE", "mean absolute error on the normalised labels of the test split.",
+           lambda r: sig(metric(r.record, "mae"), 4), ACCURACY),
+    Column("max |Δ|\nvs base", "largest absolute difference between the cell's and the baseline's outputs "
+           "on the test split.", lambda r: sig(metric(r.record, "max_abs_diff_vs_baseline"), 3), ACCURACY),
+    Column("p50\nms", "median latency of one inference at batch 1, in milliseconds, after warm-up.",
+           _latency("p50"), SPEED),
+    Column("p90\nms", "90th-percentile latency at batch 1, in milliseconds.", _latency("p90"), SPEED),
+    Column("p99\nms", "99th-percentile latency at batch 1, in milliseconds.", _latency("p99"), SPEED),
+    Column("Throughput\nsamples/s", "samples per second at the batch size given above the table.",
+           lambda r: sig(metric(r.record, "throughput_sps"), 3), SPEED),
+    Column("Peak RSS\nMiB", "peak resident memory of the process that measured the cell, in MiB.",
+           lambda r: fixed(metric(r.record, "peak_rss_mb"), 1), SPEED),
+    Column("Speed-up", "baseline p50 ÷ cell p50: above 1× the cell is faster than the baseline.",
+           lambda r: times(r.speedup), SPEED),
+)
+
+
+def caption(model: ModelSummary) -> str:
+    """What the results table shows and how its rows are ordered."""
+    batches = ", ".join(map(str, model.batch_sizes)) or DASH
+    threads = ", ".join(map(str, model.threads)) or DASH
+    return (f"Rows are the ok cells, baseline first, then fastest p50 first. Latency at batch 1; "
+            f"throughput at batch size {batches}; {threads} thread(s). "
+            "Speed-up = baseline p50 ÷ cell p50 (>1× = faster); "
+            "size ratio = baseline size ÷ cell size (>1× = smaller).")
+
+
+def baseline_note(model: ModelSummary) -> str | None:
+    """Why the comparisons are missing when the baseline cell did not produce a result, else None."""
+    if model.baseline is not None and model.baseline.status == "ok":
+        return None
+    state = "is not in the store" if model.baseline is None else model.baseline.status
+    return f"Baseline cell {model.baseline_key} {state}: speed-up, size ratio and ΔMSE are not available."
+
+
+def model_line(model: ModelSummary, code: Callable[[str], str]) -> str:
+    """Framework, source, parameters and training of the model; `code` marks literal text (paths, keys)."""
+    info = model.info
+    parts = [f"framework {model.framework}"]
+    if info.get("source"):
+        parts.append(f"source {code(str(info['source']))}")
+    params = number(info.get("params"))
+    if params is not None:
+        parts.append(f"{int(params):,} parameters")
+    training = info.get("training") if isinstance(info.get("training"), dict) else None
+    if training:
+        epochs, train_s = training.get("epochs"), number(training.get("train_s"))
+        parts.append(f"trained {epochs if epochs is not None else DASH} epochs in {sig(train_s, 3)} s")
+    elif "training" in info:
+        parts.append("not trained by bench-matrix")
+    parts.append(f"baseline {code(model.baseline_key)}")
+    return " · ".join(parts)
+
+
+def mse_line(model: ModelSummary) -> str:
+    """The baseline's test MSE beside the mean predictor's, so the reader can tell whether the model learned."""
+    base = model.baseline if model.baseline is not None and model.baseline.status == "ok" else None
+    test = number(model.info.get("test_mse"))
+    test = metric(base, "mse") if test is None and base is not None else test
+    mean = number(model.info.get("mean_predictor_mse"))
+    ratio = f"; ratio {sig(test / mean, 3)} (below 1 = better than predicting the training mean)" \
+        if test is not None and mean else ""
+    samples = number(model.info.get("test_samples"))
+    on = f" on {int(samples):,} test samples" if samples is not None else ""
+    return f"Baseline test MSE {sig(test, 4)} vs mean-predictor MSE {sig(mean, 4)}{ratio}{on}."
+
+
+def run_line(report: Report) -> str:
+    """The last run (from the run facts) and what the store holds."""
+    held = report.counts
+    stored = (f"Store: {sum(held.values())} cells, {held['ok']} ok, {held['skipped']} skipped, "
+              f"{held['failed']} failed.")
+    run = report.run
+    if not run:
+        return stored
+    counts = run.get("counts") or {}
+    ran = ", ".join(f"{counts.get(s, 0)} {s}" for s in ("ok", "skipped", "failed")) if counts else "counts not stored"
+    wall = number(run.get("wall_s"))
+    return (f"Last run: matrix {run.get('matrix') or DASH}, {run.get('started_at') or DASH} → "
+            f"{run.get('finished_at') or DASH} ({sig(wall, 3)} s): {ran}. {stored}")
+
+
+def best_text(model: ModelSummary) -> tuple[str, str, str]:
+    """(method, p50 ms, speed-up) of the model's fastest ok cell, dashes when there is none."""
+    best = model.best
+    if best is None:
+        return DASH, DASH, DASH
+    return best.record.cell.label, sig(p50(best.record), 3), times(best.speedup)

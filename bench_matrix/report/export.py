@@ -1,0 +1,64 @@
+"""Machine-readable exports: every record as JSON, and one flat CSV row per cell."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Any
+
+from bench_matrix.report.columns import MIB
+from bench_matrix.report.summary import Report, Row, last_line, metric
+from bench_matrix.store import CellRecord
+
+CELL_COLUMNS = ("key", "model", "framework", "backend", "strategy", "precision", "target")
+LATENCY_STATS = ("mean", "p50", "p90", "p99", "std", "min")
+CSV_COLUMNS = (*CELL_COLUMNS, "status", "reason", "size_bytes", "size_mib", "size_gzip_bytes", "size_gzip_mib",
+               "params", "mse", "mae", "max_abs_diff_vs_baseline", *(f"latency_{s}_ms" for s in LATENCY_STATS),
+               "latency_n", "throughput_sps", "batch_size", "peak_rss_mb", "convert_s", "load_s", "threads",
+               "artifact_cached", "speedup_vs_baseline", "size_ratio_vs_baseline", "mse_delta_vs_baseline")
+
+
+def records_json(records: list[CellRecord]) -> str:
+    """A JSON array of `CellRecord.to_json()` for every record, in store order."""
+    return json.dumps([record.to_json() for record in records], indent=2) + "\n"
+
+
+def write_csv(records: list[CellRecord], report: Report, path: Path) -> Path:
+    """Write one row per record (missing values empty) to `path` and return it."""
+    rows = {row.record.cell.key: row for model in report.models for row in model.rows}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="", encoding="utf-8") as handle:
+        writer = csv.DictWriter(handle, fieldnames=CSV_COLUMNS, lineterminator="\n")
+        writer.writeheader()
+        for record in records:
+            writer.writerow(csv_row(record, rows.get(record.cell.key)))
+    return path
+
+
+def csv_row(record: CellRecord, row: Row | None) -> dict[str, Any]:
+    """The flat CSV fields of one record; `row` carries the baseline comparisons of an ok cell."""
+    out: dict[str, Any] = {"key": record.cell.key, **record.cell.as_dict(), "status": record.status,
+                           "reason": last_line(record.reason)}
+    for name in ("size_bytes", "size_gzip_bytes", "params", "mse", "mae", "max_abs_diff_vs_baseline",
+                 "throughput_sps", "batch_size", "peak_rss_mb", "convert_s", "load_s", "threads"):
+        out[name] = _plain(metric(record, name))
+    for name in ("size", "size_gzip"):
+        size = metric(record, f"{name}_bytes")
+        out[f"{name}_mib"] = "" if size is None else round(size / MIB, 6)
+    for stat in LATENCY_STATS:
+        out[f"latency_{stat}_ms"] = _plain(metric(record, "latency_ms", stat))
+    out["latency_n"] = _plain(metric(record, "latency_ms", "n"))
+    cached = record.metrics.get("artifact_cached")
+    out["artifact_cached"] = "" if not isinstance(cached, bool) else str(cached).lower()
+    out["speedup_vs_baseline"] = _plain(row.speedup if row else None)
+    out["size_ratio_vs_baseline"] = _plain(row.size_ratio if row else None)
+    out["mse_delta_vs_baseline"] = _plain(row.mse_delta if row else None)
+    return out
+
+
+def _plain(value: float | None) -> float | int | str:
+    """A number for the CSV (whole numbers without ".0"), or "" when missing."""
+    if value is None:
+        return ""
+    return int(value) if value.is_integer() else value

@@ -1,0 +1,147 @@
+"""GitHub-flavoured Markdown pages of a report: index.md and one page per model, byte-identical for a given store."""
+
+from __future__ import annotations
+
+import html
+import re
+from pathlib import Path
+
+from bench_matrix.report.columns import (
+    COLUMNS,
+    DASH,
+    DIFFERENT_ENVIRONMENTS,
+    Column,
+    baseline_note,
+    best_text,
+    caption,
+    model_line,
+    mse_line,
+    run_line,
+    sig,
+)
+from bench_matrix.report.summary import Environment, ModelSummary, Report, last_line, number
+from bench_matrix.store import CellRecord
+
+_COLUMN_NOTES = ("Latency is measured one sample at a time after warm-up runs; p50/p90/p99 are percentiles "
+                 "over the timed runs.")
+
+
+def page_name(model: str) -> str:
+    """File name of a model's page; a model called "index" must not overwrite the index."""
+    return "index-model.md" if model.lower() == "index" else f"{model}.md"
+
+
+def write_pages(report: Report, out_dir: Path) -> list[Path]:
+    """Write index.md and every model page into `out_dir`; return their paths, index first."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    pages = {"index.md": index_page(report)}
+    pages.update({page_name(m.name): model_page(m) for m in report.models})
+    paths = []
+    for name, text in pages.items():
+        path = out_dir / name
+        path.write_text(text, encoding="utf-8", newline="\n")
+        paths.append(path)
+    return paths
+
+
+def index_page(report: Report) -> str:
+    """Run summary, one line per model (fastest cell, MSE vs mean predictor, link) and the environment."""
+    lines = ["# bench-matrix report", "", run_line(report), "", "## Models", "",
+             _table(["Model", "Framework", "ok", "skipped", "failed", "Fastest cell", "p50 ms", "Speed-up",
+                     "Test MSE / mean-predictor MSE"], [False, False, True, True, True, False, True, True, True],
+                    [_index_row(m) for m in report.models]),
+             "", "Speed-up = baseline p50 ÷ fastest cell p50, both at batch 1. The MSE ratio is the baseline's test "
+                 "MSE over that of always predicting the training mean (below 1 = the model learned something).",
+             "", "## Environment", "", *_environment(report.environment)]
+    return "\n".join(lines) + "\n"
+
+
+def _index_row(model: ModelSummary) -> list[str]:
+    method, latency, speedup = best_text(model)
+    test, mean = number(model.info.get("test_mse")), number(model.info.get("mean_predictor_mse"))
+    ratio = sig(test / mean, 3) if test is not None and mean else DASH
+    return [f"[{_escape(model.name)}]({page_name(model.name)})", model.framework, str(len(model.rows)),
+            str(len(model.skipped)), str(len(model.failed)), _escape(method), latency, speedup, ratio]
+
+
+def model_page(model: ModelSummary) -> str:
+    """The model's results table with column notes, skipped and failed cells, and the environment."""
+    lines = [f"# {_escape(model.name)}", "", "[← all models](index.md)", "",
+             _escape_text(model_line(model, _code)), "", mse_line(model), ""]
+    note = baseline_note(model)
+    if note:
+        lines += [f"> **Note:** {note}", ""]
+    lines += ["## Results", ""]
+    if model.rows:
+        lines += [caption(model), "",
+                  _table([_header(c) for c in COLUMNS], [c.numeric for c in COLUMNS],
+                         [[_escape(c.render(row)) for c in COLUMNS] for row in model.rows]),
+                  "", "Columns:", "", *(f"- **{_header(c)}**: {c.note}" for c in COLUMNS),
+                  "", f"{_COLUMN_NOTES} {DASH} means the metric was not recorded for that cell.", ""]
+    else:
+        lines += ["No cell of this model produced a result.", ""]
+    if model.skipped:
+        lines += [f"## Skipped ({len(model.skipped)})", "",
+                  _table(["Method", "Cell", "Reason"], [False] * 3,
+                         [[_escape(r.cell.label), _code(r.cell.key), _reason_cell(r.reason)] for r in model.skipped]),
+                  ""]
+    if model.failed:
+        lines += [f"## Failed ({len(model.failed)})", ""]
+        for record in model.failed:
+            lines += _failure(record)
+    lines += ["## Environment", "", *_environment(model.environment)]
+    return "\n".join(lines) + "\n"
+
+
+def _failure(record: CellRecord) -> list[str]:
+    summary = f"<code>{html.escape(record.cell.key)}</code>: {html.escape(last_line(record.reason) or 'no reason')}"
+    return [f"<details><summary>{summary}</summary>", "", *_fence(record.reason or "(no reason stored)"),
+            "", "</details>", ""]
+
+
+def _fence(text: str) -> list[str]:
+    longest = max((len(run) for run in re.findall(r"`+", text)), default=0)
+    fence = "`" * max(3, longest + 1)
+    return [f"{fence}text", text.rstrip("\n"), fence]
+
+
+def _environment(env: Environment) -> list[str]:
+    lines = [f"- **{label}**: {_escape(' / '.join(values))}" for label, values in env.fields]
+    if env.libraries:
+        lines.append("- **Libraries**: " + ", ".join(f"{_escape(name)} {_escape(' / '.join(versions))}"
+                                                     for name, versions in env.libraries))
+    lines += [f"- **{_escape(label)}**: {_code(' / '.join(values))}" for label, values in env.runtime]
+    if not lines:
+        lines.append("- no environment stored with these cells")
+    if env.warnings:
+        lines += ["", f"> **Warning:** {DIFFERENT_ENVIRONMENTS}", ">", *(f"> - {_escape(w)}" for w in env.warnings)]
+    return lines
+
+
+def _header(column: Column) -> str:
+    return _escape(column.header.replace("\n", " "))
+
+
+def _table(headers: list[str], numeric: list[bool], rows: list[list[str]]) -> str:
+    align = ["---:" if n else ":---" for n in numeric]
+    return "\n".join("| " + " | ".join(cells) + " |" for cells in [headers, align, *rows])
+
+
+def _reason_cell(reason: str | None) -> str:
+    lines = [_escape(line.strip()) for line in (reason or "").strip().splitlines() if line.strip()]
+    return "<br>".join(lines) or "(no reason stored)"
+
+
+def _escape(text: str) -> str:
+    """Text safe inside a table cell or line: pipes, HTML, `*`, backquotes and brackets escaped."""
+    return re.sub(r"([|*`\\\[\]])", r"\\\1", html.escape(text, quote=False))
+
+
+def _escape_text(text: str) -> str:
+    """Like `_escape` but keeping the inline code spans that `_code` produced."""
+    parts = re.split(r"(`[^`]*`)", text)
+    return "".join(part if part.startswith("`") else _escape(part) for part in parts)
+
+
+def _code(text: str) -> str:
+    return f"`{text.replace('`', '')}`" if text else DASH

@@ -1,0 +1,178 @@
+"""Pure functions turning stored records and facts into per-model rows, counts and the environment."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from bench_matrix.store import CellRecord
+
+STATUSES = ("ok", "skipped", "failed")
+# (label, env key) of the hardware/software fields shown in environment blocks, in display order.
+ENV_FIELDS = (("Host", "host"), ("OS", "os"), ("CPU", "cpu"), ("Cores", "cores"), ("Memory GB", "memory_gb"),
+              ("GPUs", "gpus"), ("Python", "python"), ("bench-matrix", "bench_matrix"))
+
+
+@dataclass(frozen=True)
+class Row:
+    """An ok cell compared with its model's baseline; a comparison is None where either side lacks the metric."""
+
+    record: CellRecord
+    is_baseline: bool
+    speedup: float | None
+    size_ratio: float | None
+    mse_delta: float | None
+
+
+@dataclass(frozen=True)
+class Environment:
+    """Distinct values of each environment field over a set of records; `warnings` name those that differ."""
+
+    fields: tuple[tuple[str, tuple[str, ...]], ...]
+    libraries: tuple[tuple[str, tuple[str, ...]], ...]
+    runtime: tuple[tuple[str, tuple[str, ...]], ...]
+    warnings: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class ModelSummary:
+    """Everything the report shows for one model."""
+
+    name: str
+    framework: str
+    info: dict[str, Any]
+    baseline_key: str
+    baseline: CellRecord | None
+    rows: tuple[Row, ...]
+    skipped: tuple[CellRecord, ...]
+    failed: tuple[CellRecord, ...]
+    environment: Environment
+
+    @property
+    def best(self) -> Row | None:
+        """The ok cell with the lowest p50 latency, if any cell has one."""
+        timed = [r for r in self.rows if p50(r.record) is not None]
+        return min(timed, key=lambda r: (p50(r.record), r.record.cell.key)) if timed else None
+
+    @property
+    def batch_sizes(self) -> tuple[int, ...]:
+        return _distinct_metric(self.rows, "batch_size")
+
+    @property
+    def threads(self) -> tuple[int, ...]:
+        return _distinct_metric(self.rows, "threads")
+
+
+@dataclass(frozen=True)
+class Report:
+    """The whole store, summarised: models in name order, the union environment, the last run and counts."""
+
+    models: tuple[ModelSummary, ...]
+    environment: Environment
+    run: dict[str, Any]
+    counts: dict[str, int]
+
+
+def number(value: Any) -> float | None:
+    """The value as a float when it is a real number (bools and text are not), else None."""
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
+
+
+def metric(record: CellRecord, *path: str) -> float | None:
+    """A numeric metric by key path (e.g. "latency_ms", "p50"), or None when absent or malformed."""
+    value: Any = record.metrics
+    for key in path:
+        value = value.get(key) if isinstance(value, dict) else None
+    return number(value)
+
+
+def p50(record: CellRecord) -> float | None:
+    return metric(record, "latency_ms", "p50")
+
+
+def last_line(text: str | None) -> str:
+    """The last non-blank line of a (possibly multi-line) reason, or "" when there is none."""
+    lines = [line.strip() for line in (text or "").splitlines() if line.strip()]
+    return lines[-1] if lines else ""
+
+
+def count(records: Iterable[CellRecord]) -> dict[str, int]:
+    records = list(records)
+    return {status: sum(r.status == status for r in records) for status in STATUSES}
+
+
+def summarize(records: list[CellRecord], infos: Mapping[str, dict[str, Any]], run: dict[str, Any]) -> Report:
+    """Group records by model and compare each ok cell with the model's baseline."""
+    by_model: dict[str, list[CellRecord]] = {}
+    for record in records:
+        by_model.setdefault(record.cell.model, []).append(record)
+    models = tuple(_model(name, by_model[name], infos.get(name) or {}) for name in sorted(by_model))
+    return Report(models=models, environment=environment(records), run=run, counts=count(records))
+
+
+def _model(name: str, records: list[CellRecord], info: dict[str, Any]) -> ModelSummary:
+    framework = info.get("framework") or records[0].cell.framework
+    baseline_key = info.get("baseline_key") or f"{name}/{framework}/none/fp32/cpu"
+    baseline = next((r for r in records if r.cell.key == baseline_key), None)
+    reference = baseline if baseline is not None and baseline.status == "ok" else None
+    ok = [r for r in records if r.status == "ok"]
+    ok.sort(key=lambda r: (r is not reference, p50(r) is None, p50(r) or 0.0, r.cell.key))
+    rows = tuple(_row(r, reference) for r in ok)
+    by_key = sorted(records, key=lambda r: r.cell.key)
+    return ModelSummary(name=name, framework=framework, info=info, baseline_key=baseline_key, baseline=baseline,
+                        rows=rows, skipped=tuple(r for r in by_key if r.status == "skipped"),
+                        failed=tuple(r for r in by_key if r.status == "failed"), environment=environment(records))
+
+
+def _row(record: CellRecord, reference: CellRecord | None) -> Row:
+    if reference is None:
+        return Row(record, False, None, None, None)
+    mse, base_mse = metric(record, "mse"), metric(reference, "mse")
+    return Row(record=record, is_baseline=record is reference,
+               speedup=_ratio(p50(reference), p50(record)),
+               size_ratio=_ratio(metric(reference, "size_bytes"), metric(record, "size_bytes")),
+               mse_delta=None if mse is None or base_mse is None else mse - base_mse)
+
+
+def _ratio(numerator: float | None, denominator: float | None) -> float | None:
+    return None if numerator is None or denominator is None or denominator <= 0 else numerator / denominator
+
+
+def _distinct_metric(rows: Iterable[Row], key: str) -> tuple[int, ...]:
+    values = {metric(r.record, key) for r in rows}
+    return tuple(sorted(int(v) for v in values if v is not None))
+
+
+def _text(value: Any) -> str:
+    if isinstance(value, list | tuple):
+        return ", ".join(_text(v) for v in value) if value else "none"
+    if isinstance(value, dict):
+        return json.dumps(value, sort_keys=True)
+    return str(value)
+
+
+def environment(records: Iterable[CellRecord]) -> Environment:
+    """The union of the records' environments; missing values are ignored, differing ones are warned about."""
+    fields: dict[str, set[str]] = {label: set() for label, _ in ENV_FIELDS}
+    libraries: dict[str, set[str]] = {}
+    runtime: dict[str, set[str]] = {}
+    for record in records:
+        env = record.env or {}
+        for label, key in ENV_FIELDS:
+            if env.get(key) is not None:
+                fields[label].add(_text(env[key]))
+        for name, version in (env.get("libraries") or {}).items():
+            libraries.setdefault(name, set()).add(_text(version))
+        for name, value in (env.get("runtime") or {}).items():
+            runtime.setdefault(f"{record.cell.backend} {name}", set()).add(_text(value))
+    warnings = [f"{label} differs between cells: {' / '.join(sorted(values))}"
+                for label, values in fields.items() if len(values) > 1]
+    mixed = [f"{name} ({', '.join(sorted(v))})" for name, v in sorted(libraries.items()) if len(v) > 1]
+    if mixed:
+        warnings.append(f"library versions differ between cells: {'; '.join(mixed)}")
+    return Environment(fields=tuple((k, tuple(sorted(v))) for k, v in fields.items() if v),
+                       libraries=tuple((k, tuple(sorted(v))) for k, v in sorted(libraries.items())),
+                       runtime=tuple((k, tuple(sorted(v))) for k, v in sorted(runtime.items())),
+                       warnings=tuple(warnings))

@@ -1,0 +1,122 @@
+"""Rich tables of a report for the terminal: per model results, skipped and failed cells, and the environment."""
+
+from __future__ import annotations
+
+from rich.cells import cell_len
+from rich.console import Console, Group
+from rich.panel import Panel
+from rich.table import Table
+from rich.text import Text
+
+from bench_matrix.report.columns import (
+    ACCURACY,
+    COLUMNS,
+    DIFFERENT_ENVIRONMENTS,
+    SIZE,
+    SPEED,
+    Column,
+    baseline_note,
+    best_text,
+    caption,
+    model_line,
+    mse_line,
+    run_line,
+)
+from bench_matrix.report.summary import Environment, ModelSummary, Report, last_line
+from bench_matrix.store import CellRecord
+
+# Ways to lay out the results columns, tried in order until every table fits the console.
+_LAYOUTS = (((SIZE, ACCURACY, SPEED),), ((SIZE, ACCURACY), (SPEED,)), ((SIZE,), (ACCURACY,), (SPEED,)))
+
+
+def print_report(report: Report, console: Console) -> None:
+    """Print the run line, every model's tables and the environment panel."""
+    console.print(Text(run_line(report)))
+    if len(report.models) > 1:
+        console.print(_overview(report))
+    for model in report.models:
+        _print_model(model, console)
+    console.print(environment_panel(report.environment, "Environment (all cells)"))
+
+
+def _overview(report: Report) -> Table:
+    table = Table(title="Models", title_justify="left")
+    for header in ("Model", "ok", "skipped", "failed", "Fastest cell", "p50 ms", "Speed-up"):
+        table.add_column(header, justify="left" if header in ("Model", "Fastest cell") else "right")
+    for model in report.models:
+        method, latency, speedup = best_text(model)
+        table.add_row(model.name, str(len(model.rows)), str(len(model.skipped)), str(len(model.failed)),
+                      method, latency, speedup)
+    return table
+
+
+def _print_model(model: ModelSummary, console: Console) -> None:
+    console.rule(Text(model.name, style="bold"))
+    console.print(Text(model_line(model, str), style="dim"))
+    console.print(Text(mse_line(model)))
+    note = baseline_note(model)
+    if note:
+        console.print(Text(note, style="yellow"))
+    if model.rows:
+        console.print(*results_tables(model, console))
+    if model.skipped:
+        console.print(_reasons_table(f"Skipped ({len(model.skipped)})", model.skipped, full=True, style="yellow"))
+    if model.failed:
+        console.print(_reasons_table(f"Failed ({len(model.failed)}): last line of the reason",
+                                     model.failed, full=False, style="red"))
+
+
+def results_tables(model: ModelSummary, console: Console) -> list[Table]:
+    """The model's results as one table, or split by column group into as few tables as fit the console."""
+    layout = next((layout for layout in _LAYOUTS if all(_width(model, groups) <= console.width for groups in layout)),
+                  _LAYOUTS[-1])
+    return [_results_table(model, groups, last=i == len(layout) - 1) for i, groups in enumerate(layout)]
+
+
+def _columns(groups: tuple[str, ...]) -> list[Column]:
+    return [c for c in COLUMNS if not c.group or c.group in groups]
+
+
+def _width(model: ModelSummary, groups: tuple[str, ...]) -> int:
+    """Width of the table without wrapping: widest cell per column, one space of padding each side, borders."""
+    texts = [[*c.header.split("\n"), *(c.render(row) for row in model.rows)] for c in _columns(groups)]
+    return sum(max(map(cell_len, column)) + 3 for column in texts) + 1
+
+
+def _results_table(model: ModelSummary, groups: tuple[str, ...], last: bool) -> Table:
+    title = f"{model.name}: {'results' if len(groups) == len(_LAYOUTS[0][0]) else ', '.join(groups)}"
+    table = Table(title=title, title_justify="left", caption=caption(model) if last else None,
+                  caption_justify="left")
+    columns = _columns(groups)
+    for column in columns:
+        widest = max(cell_len(column.render(row)) for row in model.rows)
+        table.add_column(column.header, justify="right" if column.numeric else "left",
+                         min_width=widest if column.numeric else min(widest, 16))
+    for row in model.rows:
+        table.add_row(*(column.render(row) for column in columns), style="bold" if row.is_baseline else None)
+    return table
+
+
+def _reasons_table(title: str, records: tuple[CellRecord, ...], full: bool, style: str) -> Table:
+    table = Table(title=title, title_justify="left", title_style=style)
+    table.add_column("Method")
+    table.add_column("Reason", overflow="fold")
+    for record in records:
+        reason = (record.reason or "").strip() if full else last_line(record.reason)
+        table.add_row(record.cell.label, Text(reason or "(no reason stored)"))
+    return table
+
+
+def environment_panel(env: Environment, title: str) -> Panel:
+    """The environment as a label/value grid, with warnings when cells were measured in different environments."""
+    grid = Table.grid(padding=(0, 2))
+    grid.add_column(style="bold")
+    grid.add_column(overflow="fold")
+    libraries = ", ".join(f"{name} {' / '.join(versions)}" for name, versions in env.libraries)
+    for label, values in (*env.fields, *((("Libraries", (libraries,)),) if libraries else ()), *env.runtime):
+        grid.add_row(Text(label), Text(" / ".join(values)))
+    if not (env.fields or env.libraries or env.runtime):
+        grid.add_row("—", "no environment stored with these cells")
+    headline = [Text(f"⚠ {DIFFERENT_ENVIRONMENTS}", style="bold yellow")] if env.warnings else []
+    warnings = headline + [Text(f"  • {warning}", style="yellow") for warning in env.warnings]
+    return Panel(Group(grid, *warnings), title=title, title_align="left")

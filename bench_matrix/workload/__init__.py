@@ -1,0 +1,1 @@
+"""Synthetic workloads (data sets and simulators) used by the benchmarks."""

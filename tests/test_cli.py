@@ -1,0 +1,171 @@
+"""End to end through the CLI with real runtimes: run, plan, report, backends, plugins, crash, kill, resume."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import TESTS, cli, matrix_text, popen_cli
+
+pytestmark = pytest.mark.slow
+
+
+def install_plugin(root: Path) -> dict[str, str]:
+    """Install tests/plugin_crashy.py as distribution 'crashy-backend' the way pip would (dist-info + entry point)."""
+    site = root / "site"
+    dist = site / "crashy_backend-0.1.dist-info"
+    dist.mkdir(parents=True)
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: crashy-backend\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text("[bench_matrix.backends]\ncrashy = plugin_crashy:CrashyBackend\n")
+    return {"PYTHONPATH": os.pathsep.join([str(site), str(TESTS), os.environ.get("PYTHONPATH", "")])}
+
+
+def records(project: Path) -> dict[str, dict]:
+    out = cli(project, "report", "--format", "json")
+    assert out.returncode == 0, out.stderr
+    return {"/".join(r["cell"][k] for k in ("backend", "strategy", "precision", "target")): r
+            for r in json.loads(out.stdout)}
+
+
+def test_run_small_matrix_and_report(tiny_project):
+    (tiny_project / "m.yaml").write_text(matrix_text(["pytorch", "torchscript", "onnxruntime"],
+                                                     ["none", "ptq_dynamic", "ptq_static"], ["fp32", "int8"],
+                                                     ["cpu", "cuda"]))
+    plan = cli(tiny_project, "plan", "m.yaml")
+    assert plan.returncode == 0, plan.stderr
+    assert "7 will run" in plan.stdout and "3 will be skipped" in plan.stdout
+
+    run = cli(tiny_project, "run", "m.yaml")
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "7 ok, 3 skipped, 0 failed" in run.stdout
+    found = records(tiny_project)
+    assert set(found) == {"pytorch/none/fp32/cpu", "torchscript/none/fp32/cpu", "torchscript/ptq_dynamic/int8/cpu",
+                          "torchscript/ptq_static/int8/cpu", "onnxruntime/none/fp32/cpu",
+                          "onnxruntime/ptq_dynamic/int8/cpu", "onnxruntime/ptq_static/int8/cpu",
+                          "pytorch/none/fp32/cuda", "torchscript/none/fp32/cuda", "onnxruntime/none/fp32/cuda"}
+    baseline = found["pytorch/none/fp32/cpu"]["metrics"]
+    assert baseline["max_abs_diff_vs_baseline"] == 0.0
+    for key, record in found.items():
+        if key.endswith("cuda"):
+            assert record["status"] == "skipped" and "GPU" in record["reason"]
+            continue
+        m = record["metrics"]
+        assert record["status"] == "ok", record["reason"]
+        assert set(record["env"]) >= {"host", "cpu", "cores", "python", "libraries"}
+        assert m["latency_ms"]["n"] >= 5 and m["latency_ms"]["p50"] <= m["latency_ms"]["p99"]
+        assert m["size_bytes"] > 0 and m["throughput_sps"] > 0 and m["peak_rss_mb"] > 0 and m["threads"] == 1
+        assert m["test_samples"] == 24
+        assert m["mse"] == pytest.approx(baseline["mse"], rel=0.5, abs=0.05)
+    assert found["onnxruntime/none/fp32/cpu"]["metrics"]["max_abs_diff_vs_baseline"] < 1e-4
+    assert found["onnxruntime/none/fp32/cpu"]["metrics"]["session"]["providers"] == ["CPUExecutionProvider"]
+
+    again = cli(tiny_project, "run", "m.yaml", "--backend", "onnxruntime")
+    assert "0 ok" in again.stdout and "3 already stored" in again.stdout  # nothing finished is run again
+    forced = cli(tiny_project, "run", "m.yaml", "--backend", "onnxruntime", "--strategy", "none", "--force")
+    assert "1 ok" in forced.stdout
+    assert records(tiny_project)["onnxruntime/none/fp32/cpu"]["metrics"]["artifact_cached"] is True
+
+    table = cli(tiny_project, "report", "--out", str(tiny_project / "pages"))
+    assert table.returncode == 0, table.stderr
+    assert (tiny_project / "pages" / "index.md").is_file() and (tiny_project / "pages" / "tiny.md").is_file()
+
+
+def test_plugin_backend_that_crashes_fails_only_its_cell(tiny_project):
+    env = install_plugin(tiny_project)
+    listing = cli(tiny_project, "backends", env=env)
+    assert "crashy" in listing.stdout and "crashy-backend 0.1" in listing.stdout
+
+    (tiny_project / "m.yaml").write_text(matrix_text(["crashy", "pytorch"], ["none"], ["fp32"], ["cpu"]))
+    run = cli(tiny_project, "run", "m.yaml", env=env)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "1 ok, 0 skipped, 1 failed" in run.stdout
+    found = records(tiny_project)
+    assert found["pytorch/none/fp32/cpu"]["status"] == "ok"
+    crashed = found["crashy/none/fp32/cpu"]
+    assert crashed["status"] == "failed" and "killed by signal SIGABRT" in crashed["reason"]
+
+
+def _wait_for_ok_record(db: Path, proc, timeout: float = 180) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, proc.stdout.read()
+        if db.is_file():
+            with sqlite3.connect(db) as con:
+                if con.execute("SELECT count(*) FROM results WHERE status = 'ok'").fetchone()[0]:
+                    return
+        time.sleep(0.2)
+    raise AssertionError("no cell finished in time")
+
+
+def _workers_of(workspace: Path) -> list[int]:
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except (OSError, ValueError):
+            continue
+        if "bench_matrix.worker" in cmd and str(workspace) in cmd:
+            found.append(int(entry.name))
+    return found
+
+
+def test_killed_run_keeps_finished_cells_and_resumes(tiny_project):
+    (tiny_project / "m.yaml").write_text(matrix_text(["torchscript", "onnxruntime"], ["none", "ptq_dynamic"],
+                                                     ["fp32", "int8"], ["cpu"]))
+    db = tiny_project / "ws" / "results.sqlite"
+    proc = popen_cli(tiny_project, "run", "m.yaml")
+    _wait_for_ok_record(db, proc)
+    proc.kill()  # SIGKILL: no chance to clean up
+    proc.wait()
+    time.sleep(1.0)
+    assert _workers_of(tiny_project / "ws") == []  # children die with their parent
+    with sqlite3.connect(db) as con:
+        kept = dict(con.execute("SELECT key, finished_at FROM results WHERE status = 'ok'").fetchall())
+    assert 1 <= len(kept) < 4
+
+    rerun = cli(tiny_project, "run", "m.yaml")
+    assert rerun.returncode == 0, rerun.stdout + rerun.stderr
+    assert f"{4 - len(kept)} ok" in rerun.stdout and f"{len(kept)} already stored" in rerun.stdout
+    with sqlite3.connect(db) as con:
+        after = dict(con.execute("SELECT key, finished_at FROM results WHERE status = 'ok'").fetchall())
+    assert len(after) == 4 and all(after[k] == v for k, v in kept.items())  # finished cells were not re-run
+
+
+def test_ctrl_c_stops_cleanly_with_exit_130(tiny_project):
+    (tiny_project / "m.yaml").write_text(matrix_text(["torchscript", "onnxruntime"], ["none", "ptq_dynamic"],
+                                                     ["fp32", "int8"], ["cpu"]))
+    proc = popen_cli(tiny_project, "run", "m.yaml")
+    _wait_for_ok_record(tiny_project / "ws" / "results.sqlite", proc)
+    proc.send_signal(signal.SIGINT)
+    output, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 130
+    assert "interrupted" in output and "run the same command again to resume" in output
+    assert "Traceback" not in output
+    assert _workers_of(tiny_project / "ws") == []
+
+
+def test_user_errors_exit_2_without_traceback(tiny_project):
+    (tiny_project / "m.yaml").write_text(matrix_text(["pytorch"], ["none"], ["fp32"], ["cpu"]).replace(
+        "npz: data.npz", "npz: missing.npz"))
+    out = cli(tiny_project, "run", "m.yaml")
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "m.yaml:3: dataset.npz: dataset file not found" in out.stderr
+
+    np_bad = tiny_project / "bad.npz"
+    import numpy as np
+
+    np.savez(np_bad, images=np.zeros((10, 4, 4, 3)))
+    (tiny_project / "m.yaml").write_text(matrix_text(["pytorch"], ["none"], ["fp32"], ["cpu"]).replace(
+        "npz: data.npz", "npz: bad.npz"))
+    out = cli(tiny_project, "run", "m.yaml")
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "missing array(s) x, y" in out.stderr and "it has: images" in out.stderr
+
+    missing = cli(tiny_project, "run", "nope.yaml")
+    assert missing.returncode == 2 and "nope.yaml: file not found" in missing.stderr

@@ -1,0 +1,49 @@
+"""Child processes: results come back, crashes and timeouts become reasons, phases reach the parent."""
+
+from __future__ import annotations
+
+import time
+
+from pathlib import Path
+
+import pytest
+
+from bench_matrix.launcher import run_job
+
+
+@pytest.fixture(autouse=True)
+def tests_importable(monkeypatch):
+    monkeypatch.setenv("PYTHONPATH", str(Path(__file__).parent))
+
+
+def test_crash_without_result_reports_signal_and_log_tail(tmp_path):
+    outcome = run_job({"mode": "launcher_jobs:abort"}, tmp_path / "jobs", tmp_path / "log.txt", timeout_s=60)
+    assert not outcome.ok
+    assert "killed by signal SIGABRT" in outcome.error
+    assert "about to abort" in outcome.error  # the log tail is part of the reason
+
+
+def test_exception_is_reported_with_its_location(tmp_path):
+    outcome = run_job({"mode": "launcher_jobs:fail"}, tmp_path / "jobs", tmp_path / "log.txt", timeout_s=60)
+    assert not outcome.ok and outcome.error.startswith("ValueError: bad model")
+    assert "launcher_jobs.py" in outcome.error
+
+
+def test_timeout_kills_the_child(tmp_path):
+    begin = time.monotonic()
+    phases = []
+    outcome = run_job({"mode": "launcher_jobs:sleep", "seconds": 60}, tmp_path / "jobs", tmp_path / "log.txt",
+                      timeout_s=2, on_phase=phases.append)
+    assert time.monotonic() - begin < 20
+    assert "timed out after 2 s (in phase 'measure')" in outcome.error
+    assert phases == ["measure"]
+
+
+def test_value_and_phases_come_back(tmp_path):
+    phases = []
+    outcome = run_job({"mode": "launcher_jobs:echo", "value": [1, "a"]}, tmp_path / "jobs", tmp_path / "log.txt",
+                      timeout_s=60, on_phase=phases.append)
+    assert outcome.ok and outcome.value == [1, "a"]
+    assert phases == ["convert", "measure"]
+    assert not list((tmp_path / "jobs").iterdir())  # job files are cleaned up
+

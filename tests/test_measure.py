@@ -1,0 +1,77 @@
+"""Statistics, accuracy, sizes and the timing loop, checked against values computed by hand."""
+
+from __future__ import annotations
+
+import gzip
+import time
+
+import numpy as np
+import pytest
+
+from bench_matrix.measure.size import artifact_size
+from bench_matrix.measure.stats import accuracy, latency_summary
+from bench_matrix.measure.timing import LoopSettings, throughput, time_calls
+
+
+def test_latency_summary_percentiles_and_units():
+    durations_ns = np.arange(1, 101) * 1_000_000  # 1..100 ms
+    s = latency_summary(durations_ns)
+    assert s["n"] == 100 and s["min"] == 1.0
+    assert s["mean"] == pytest.approx(50.5)
+    assert s["p50"] == pytest.approx(50.5)  # linear interpolation between the 50th and 51st values
+    assert s["p90"] == pytest.approx(90.1)
+    assert s["p99"] == pytest.approx(99.01)
+    assert s["std"] == pytest.approx(np.std(np.arange(1, 101), ddof=1))
+
+
+def test_latency_summary_rejects_empty():
+    with pytest.raises(ValueError):
+        latency_summary(np.array([], dtype=np.int64))
+
+
+def test_accuracy_against_labels_and_baseline():
+    labels = np.array([[0.0, 1.0], [1.0, 0.0]])
+    pred = np.array([[0.5, 1.0], [1.0, -1.0]], dtype=np.float32)
+    out = accuracy(pred, labels, reference=np.array([[0.5, 1.0], [1.0, -0.5]]))
+    assert out["mse"] == pytest.approx((0.25 + 0 + 0 + 1) / 4)
+    assert out["mae"] == pytest.approx((0.5 + 0 + 0 + 1) / 4)
+    assert out["mse_per_output"] == pytest.approx([0.125, 0.5])
+    assert out["max_abs_diff_vs_baseline"] == pytest.approx(0.5)
+
+
+def test_accuracy_rejects_shape_mismatch():
+    with pytest.raises(ValueError, match="outputs have shape"):
+        accuracy(np.zeros((4, 3)), np.zeros((4, 2)), None)
+
+
+def test_artifact_size_sums_every_file_and_compresses(tmp_path):
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "a.bin").write_bytes(b"\0" * 100_000)
+    (tmp_path / "sub" / "b.bin").write_bytes(np.random.default_rng(0).bytes(50_000))
+    size = artifact_size(tmp_path)
+    assert size["size_bytes"] == 150_000 and size["files"] == 2
+    zeros = len(gzip.compress(b"\0" * 100_000, compresslevel=9, mtime=0))
+    assert zeros < 1000 and size["size_gzip_bytes"] > 50_000  # sparse data shrinks, random data does not
+
+
+def test_time_calls_meets_both_minimums():
+    calls = []
+    settings = LoopSettings(warmup_iterations=3, warmup_s=0.0, min_iterations=10, min_time_s=0.05, max_time_s=5)
+    durations = time_calls(lambda x: (calls.append(x), time.sleep(0.001)), ["a", "b"], settings)
+    assert len(durations) >= 10
+    assert durations.sum() >= 0.05e9 * 0.9  # the measured time covers the minimum duration
+    assert len(calls) == len(durations) + 3  # warm-up calls are not timed
+    assert np.all(durations >= 1_000_000)  # each timed call slept at least 1 ms
+    assert set(calls) == {"a", "b"}  # inputs are cycled
+
+
+def test_time_calls_stops_at_max_time():
+    settings = LoopSettings(0, 0.0, min_iterations=10_000, min_time_s=0.0, max_time_s=0.05)
+    durations = time_calls(lambda x: time.sleep(0.005), [None], settings)
+    assert 3 <= len(durations) < 100
+
+
+def test_throughput_counts_samples_per_second():
+    out = throughput(lambda x: time.sleep(0.01), None, batch_size=8, seconds=0.1)
+    assert out["throughput_batches"] >= 3
+    assert 8 / 0.02 < out["throughput_sps"] <= 8 / 0.01 * 1.05

@@ -1,0 +1,210 @@
+"""The report layer on a hand-made store: comparisons, Markdown pages, JSON, CSV, missing data and empty stores."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+from rich.console import Console
+
+from bench_matrix.cell import Cell
+from bench_matrix.errors import UserError
+from bench_matrix.report import load, write_report
+from bench_matrix.report.export import CSV_COLUMNS
+from bench_matrix.store import CellRecord, ResultStore, Status
+
+MIB = 2**20
+ENV = {"host": "bench-1", "os": "Linux 6.8", "cpu": "Test CPU", "cores": 8, "memory_gb": 31.3, "gpus": [],
+       "python": "3.11.9", "libraries": {"torch": "2.4.0", "onnxruntime": "1.18.0"}, "bench_matrix": "0.1.0",
+       "runtime": {"providers": ["CPUExecutionProvider"]}}
+TRACEBACK = "Traceback (most recent call last):\n  File \"convert.py\", line 3\nRuntimeError: int8 | kernel missing"
+
+
+def _metrics(p50: float, size_mib: float, mse: float) -> dict[str, Any]:
+    return {"size_bytes": int(size_mib * MIB), "size_gzip_bytes": int(size_mib * MIB * 0.9), "params": 1000,
+            "mse": mse, "mae": mse * 5, "mse_per_output": [mse], "max_abs_diff_vs_baseline": 1e-6,
+            "latency_ms": {"mean": p50 * 1.1, "p50": p50, "p90": p50 * 1.5, "p99": p50 * 2, "std": 0.1,
+                           "min": p50 * 0.9, "n": 200},
+            "throughput_sps": 1000 / p50 * 8, "batch_size": 32, "peak_rss_mb": 250.5, "convert_s": 1.5,
+            "load_s": 0.2, "threads": 4, "artifact_cached": False, "session": {"providers": ["CPUExecutionProvider"]}}
+
+
+def _record(cell: Cell, status: Status = "ok", reason: str | None = None, metrics: dict[str, Any] | None = None,
+            env: dict[str, Any] | None = None) -> CellRecord:
+    return CellRecord(cell=cell, status=status, reason=reason, metrics=metrics or {}, env=ENV if env is None else env,
+                      started_at="2024-05-01T10:00:00", finished_at="2024-05-01T10:00:05", fingerprint="f",
+                      matrix="matrix.yaml")
+
+
+PILOT_BASE = Cell("pilotnet", "pytorch", "pytorch", "none", "fp32", "cpu")
+PILOT_ORT = Cell("pilotnet", "pytorch", "onnxruntime", "none", "fp32", "cpu")
+PILOT_PTQ = Cell("pilotnet", "pytorch", "onnxruntime", "ptq_dynamic", "int8", "cpu")
+PILOT_CUDA = Cell("pilotnet", "pytorch", "onnxruntime", "none", "fp16", "cuda")
+PILOT_TS = Cell("pilotnet", "pytorch", "torchscript", "ptq_static", "int8", "cpu")
+TINY_BASE = Cell("tiny", "pytorch", "pytorch", "none", "fp32", "cpu")
+TINY_ORT = Cell("tiny", "pytorch", "onnxruntime", "none", "fp32", "cpu")
+
+
+@pytest.fixture
+def store_path(tmp_path: Path) -> Path:
+    path = tmp_path / "results.sqlite"
+    store = ResultStore(path)
+    other_env = {**ENV, "host": "bench-2", "libraries": {"torch": "2.5.0", "onnxruntime": "1.18.0"}}
+    for record in (
+        _record(PILOT_BASE, metrics=_metrics(2.0, 4.0, 0.0123)),
+        _record(PILOT_ORT, metrics=_metrics(1.0, 2.0, 0.0124)),
+        _record(PILOT_PTQ, metrics={"latency_ms": {"p50": 0.5}}),
+        _record(PILOT_CUDA, "skipped", "no NVIDIA GPU on this machine (no driver: nvidia-smi not found)"),
+        _record(PILOT_TS, "failed", TRACEBACK),
+        _record(TINY_BASE, metrics=_metrics(0.4, 0.1, 0.05), env=other_env),
+        _record(TINY_ORT, "failed", "onnx export failed", env=other_env),
+    ):
+        store.put(record)
+    store.put_fact("model:pilotnet", "info", {
+        "framework": "pytorch", "source": "builtin pilotnet", "params": 252219, "baseline_key": PILOT_BASE.key,
+        "test_mse": 0.0123, "mean_predictor_mse": 0.0615, "test_samples": 1000,
+        "training": {"epochs": 10, "train_s": 42.0}})
+    store.put_fact("run", "last", {"matrix": "matrix.yaml", "started_at": "2024-05-01T10:00:00",
+                                   "finished_at": "2024-05-01T10:01:00", "wall_s": 60.0,
+                                   "counts": {"ok": 4, "skipped": 1, "failed": 2}})
+    store.close()
+    return path
+
+
+def _console() -> Console:
+    return Console(record=True, width=240, color_system=None)
+
+
+def test_speedup_size_ratio_and_mse_delta(store_path: Path) -> None:
+    _, report = load(store_path)
+    pilot = report.models[0]
+    rows = {row.record.cell.key: row for row in pilot.rows}
+    assert [row.record.cell for row in pilot.rows][:2] == [PILOT_BASE, PILOT_PTQ]  # baseline first, then by p50
+    assert rows[PILOT_BASE.key].is_baseline and rows[PILOT_BASE.key].speedup == pytest.approx(1.0)
+    assert rows[PILOT_ORT.key].speedup == pytest.approx(2.0)
+    assert rows[PILOT_ORT.key].size_ratio == pytest.approx(2.0)
+    assert rows[PILOT_ORT.key].mse_delta == pytest.approx(0.0001)
+    assert rows[PILOT_PTQ.key].speedup == pytest.approx(4.0) and rows[PILOT_PTQ.key].size_ratio is None
+    assert pilot.best is not None and pilot.best.record.cell == PILOT_PTQ
+    assert [r.cell for r in pilot.skipped] == [PILOT_CUDA] and [r.cell for r in pilot.failed] == [PILOT_TS]
+    assert report.counts == {"ok": 4, "skipped": 1, "failed": 2}
+
+
+def test_markdown_pages(store_path: Path, tmp_path: Path) -> None:
+    out = tmp_path / "reports"
+    paths = write_report(store_path, "md", out, _console())
+    assert paths == [out / "index.md", out / "pilotnet.md", out / "tiny.md"]
+    index = (out / "index.md").read_text()
+    assert "[pilotnet](pilotnet.md)" in index and "[tiny](tiny.md)" in index
+    assert "Last run: matrix matrix.yaml" in index and "Host**: bench-1 / bench-2" in index
+    assert "> - library versions differ between cells: torch (2.4.0, 2.5.0)" in index
+    page = (out / "pilotnet.md").read_text()
+    assert "| onnxruntime none fp32 | 2.00 | 1.80 | 2.00× | 0.01240 | +1.00e-04 |" in page  # size ratio 2×
+    assert "| 1.00 | 1.50 | 2.00 | 8000 | 250.5 | 2.00× |" in page  # speed-up 2×
+    assert "| pytorch none fp32 (baseline) |" in page
+    assert "ratio 0.200 (below 1" in page
+    missing = "| onnxruntime ptq_dynamic int8 | — | — | — | — | — | — | — | 0.500 | — | — | — | — | 4.00× |"
+    assert missing in page  # missing metrics render as dashes
+    table = [line for line in page.split("## Results")[1].split("## Skipped")[0].splitlines() if line.startswith("|")]
+    assert len(table) == 5 and len({line.replace("\\|", "").count("|") for line in table}) == 1
+    assert "no NVIDIA GPU on this machine" in page  # skipped reason
+    assert "RuntimeError: int8 \\| kernel missing" not in page.split("## Failed")[0]
+    assert "<code>pilotnet/torchscript/ptq_static/int8/cpu</code>: RuntimeError: int8 | kernel missing" in page
+    assert 'File "convert.py", line 3' in page  # the full failure text
+    assert "onnx export failed" in (out / "tiny.md").read_text()
+    first = [p.read_bytes() for p in paths]
+    write_report(store_path, "md", out, _console())
+    assert [p.read_bytes() for p in paths] == first  # deterministic
+
+
+def test_table_prints_tables_and_writes_markdown(store_path: Path, tmp_path: Path) -> None:
+    console = _console()
+    paths = write_report(store_path, "table", tmp_path / "reports", console)
+    text = console.export_text()
+    assert len(paths) == 3 and all(p.is_file() for p in paths)
+    assert "onnxruntime none fp32" in text and "2.00×" in text
+    assert "no NVIDIA GPU on this machine" in text
+    assert "RuntimeError: int8 | kernel missing" in text and "convert.py" not in text  # failed: last line only
+    assert "mean-predictor MSE 0.0615" in text and "bench-1 / bench-2" in text
+    narrow = Console(record=True, width=80, color_system=None)
+    write_report(store_path, "table", tmp_path / "reports", narrow)
+    text = narrow.export_text()
+    assert "pilotnet: size" in text and "pilotnet: speed" in text and "…" not in text  # split, not truncated
+
+
+def test_json_is_the_records(store_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert write_report(store_path, "json", tmp_path, _console()) == []
+    data = json.loads(capsys.readouterr().out)
+    assert len(data) == 7
+    assert set(data[0]) == {"cell", "status", "reason", "metrics", "artifact_path", "env", "started_at",
+                            "finished_at", "fingerprint", "matrix"}
+    assert {d["cell"]["model"] for d in data} == {"pilotnet", "tiny"}
+
+
+def test_csv_one_flat_row_per_record(store_path: Path, tmp_path: Path) -> None:
+    (path,) = write_report(store_path, "csv", tmp_path / "out", _console())
+    assert path == tmp_path / "out" / "results.csv"
+    with path.open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert len(rows) == 7 and tuple(rows[0]) == CSV_COLUMNS
+    for column in ("latency_p50_ms", "latency_p90_ms", "latency_p99_ms", "size_mib", "size_gzip_mib", "mse",
+                   "throughput_sps", "speedup_vs_baseline", "size_ratio_vs_baseline"):
+        assert column in CSV_COLUMNS
+    ort = next(r for r in rows if r["key"] == PILOT_ORT.key)
+    assert float(ort["speedup_vs_baseline"]) == 2.0 and float(ort["size_mib"]) == 2.0 and ort["threads"] == "4"
+    failed = next(r for r in rows if r["key"] == PILOT_TS.key)
+    assert failed["status"] == "failed" and failed["reason"] == "RuntimeError: int8 | kernel missing"
+    assert failed["latency_p50_ms"] == "" and failed["speedup_vs_baseline"] == ""
+
+
+def test_model_without_facts_or_baseline(tmp_path: Path) -> None:
+    path = tmp_path / "r.sqlite"
+    store = ResultStore(path)
+    store.put(_record(PILOT_ORT, metrics={"latency_ms": {"p50": 1.0}}, env={}))
+    store.put(_record(PILOT_BASE, "failed", None, env={}))
+    store.close()
+    paths = write_report(path, "md", tmp_path / "md", _console())
+    page = paths[1].read_text()
+    assert "Baseline cell pilotnet/pytorch/none/fp32/cpu failed" in page
+    assert "Baseline test MSE — vs mean-predictor MSE —." in page
+    assert "no environment stored" in page and "(no reason stored)" in page
+    write_report(path, "table", tmp_path / "md", _console())
+
+
+@pytest.mark.parametrize("fmt", ["table", "md", "json", "csv"])
+def test_missing_and_empty_store(tmp_path: Path, fmt: str) -> None:
+    missing = tmp_path / "missing.sqlite"
+    with pytest.raises(UserError, match=r"bench-matrix run MATRIX"):
+        write_report(missing, fmt, tmp_path, _console())
+    assert not missing.exists()
+    ResultStore(tmp_path / "empty.sqlite").close()
+    with pytest.raises(UserError, match=r"holds no results.*bench-matrix run MATRIX"):
+        write_report(tmp_path / "empty.sqlite", fmt, tmp_path, _console())
+
+
+def test_unknown_format(store_path: Path, tmp_path: Path) -> None:
+    with pytest.raises(UserError, match="table, md, json, csv"):
+        write_report(store_path, "html", tmp_path, _console())
+
+
+def test_report_imports_no_framework(store_path: Path, tmp_path: Path) -> None:
+    code = ("import sys\nfrom rich.console import Console\nfrom bench_matrix.report import write_report\n"
+            f"write_report({str(store_path)!r}, 'table', {str(tmp_path / 'r')!r}, Console(file=sys.stderr))\n"
+            "heavy = [m for m in ('torch', 'onnxruntime', 'tensorflow') if m in sys.modules]\n"
+            "assert not heavy, heavy\n")
+    root = Path(__file__).resolve().parents[1]
+    result = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True,
+                            env={"PYTHONPATH": str(root), "PATH": "/usr/bin:/bin"}, check=False)
+    assert result.returncode == 0, result.stderr
+
+
+def test_not_a_store(tmp_path: Path) -> None:
+    path = tmp_path / "notes.txt"
+    path.write_text("not sqlite, just text that is long enough to have a header " * 4)
+    with pytest.raises(UserError, match="not a bench-matrix results store"):
+        write_report(path, "md", tmp_path, _console())
