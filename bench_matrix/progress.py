@@ -41,15 +41,22 @@ class RunProgress:
     def tick(self) -> None:
         self._progress.refresh()
 
-    def finished(self, record: CellRecord, advance: bool = True) -> None:
+    def finished(self, record: CellRecord) -> None:
         """Print the finished cell's key figures above the bar."""
         self._progress.console.print(describe(record))
-        if advance:
-            self._progress.advance(self._task)
+        self._progress.advance(self._task)
         self._progress.refresh()
 
-    def note(self, text: str) -> None:
-        self._progress.console.print(text)
+    def skipped(self, records: list[CellRecord]) -> None:
+        """One line per distinct reason, naming the backends and targets it concerns."""
+        groups: dict[str, list[Cell]] = {}
+        for record in records:
+            groups.setdefault(record.reason or "", []).append(record.cell)
+        for reason, cells in groups.items():
+            backends = ", ".join(dict.fromkeys(c.backend for c in cells))
+            targets = ", ".join(dict.fromkeys(c.target for c in cells))
+            self._progress.console.print(f"[yellow]–[/] skipped {len(cells)} cell(s) of {escape(backends)} on "
+                                         f"{escape(targets)}: {escape(reason)}")
         self._progress.refresh()
 
 
@@ -61,7 +68,6 @@ def describe(record: CellRecord) -> str:
         m = record.metrics
         return (f"[green]✓[/] {name}  p50 {m['latency_ms']['p50']:.3g} ms  p99 {m['latency_ms']['p99']:.3g} ms  "
                 f"{m['throughput_sps']:.0f} samples/s  MSE {m['mse']:.4g}  {m['size_bytes'] / 2**20:.2f} MiB")
-    last = (record.reason or "").strip().splitlines()
+    lines = (record.reason or "").strip().splitlines()
     mark = "[yellow]–[/] skipped" if record.status == "skipped" else "[red]✗[/] failed"
-    text = last[0] if record.status == "skipped" and last else (last[-1] if last else "")
-    return f"{mark} {escape(name)}: {escape(text)}"
+    return f"{mark} {escape(name)}: {escape(lines[0] if lines else '')}"

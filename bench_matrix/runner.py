@@ -75,12 +75,12 @@ class Runner:
         counts = {"ok": 0, "skipped": 0, "failed": 0, "cached": len([p for p in chosen if p.state == "run"]) - len(todo)}
         begin, started = time.monotonic(), _now()
         with RunProgress(self.console, len(todo)) as progress:
-            for p in chosen:
-                if p.state == "skip" and not self.is_done(p.cell):  # never replace a result measured elsewhere
-                    record = self._record(p.cell, "skipped", p.reason, _now())
-                    self.store.put(record)
-                    progress.finished(record, advance=False)
-                    counts["skipped"] += 1
+            skipped = [self._record(p.cell, "skipped", p.reason, _now()) for p in chosen
+                       if p.state == "skip" and not self.is_done(p.cell)]  # never replace a result measured elsewhere
+            for record in skipped:
+                self.store.put(record)
+            progress.skipped(skipped)
+            counts["skipped"] = len(skipped)
             for model in self.matrix.models:
                 cells = [p for p in todo if p.cell.model == model.name]
                 if cells:

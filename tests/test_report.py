@@ -22,7 +22,8 @@ MIB = 2**20
 ENV = {"host": "bench-1", "os": "Linux 6.8", "cpu": "Test CPU", "cores": 8, "memory_gb": 31.3, "gpus": [],
        "python": "3.11.9", "libraries": {"torch": "2.4.0", "onnxruntime": "1.18.0"}, "bench_matrix": "0.1.0",
        "runtime": {"providers": ["CPUExecutionProvider"]}}
-TRACEBACK = "Traceback (most recent call last):\n  File \"convert.py\", line 3\nRuntimeError: int8 | kernel missing"
+# the launcher's reason format: the error first, then the traceback lines that locate it
+TRACEBACK = "RuntimeError: int8 | kernel missing\n  File \"convert.py\", line 3, in convert\n    raise RuntimeError"
 
 
 def _metrics(p50: float, size_mib: float, mse: float) -> dict[str, Any]:
@@ -129,7 +130,7 @@ def test_table_prints_tables_and_writes_markdown(store_path: Path, tmp_path: Pat
     assert len(paths) == 3 and all(p.is_file() for p in paths)
     assert "onnxruntime none fp32" in text and "2.00×" in text
     assert "no NVIDIA GPU on this machine" in text
-    assert "RuntimeError: int8 | kernel missing" in text and "convert.py" not in text  # failed: last line only
+    assert "RuntimeError: int8 | kernel missing" in text and "convert.py" not in text  # failed: the error line only
     assert "mean-predictor MSE 0.0615" in text and "bench-1 / bench-2" in text
     narrow = Console(record=True, width=80, color_system=None)
     write_report(store_path, "table", tmp_path / "reports", narrow)

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from bench_matrix.report.columns import MIB
-from bench_matrix.report.summary import Report, Row, last_line, metric
+from bench_matrix.report.summary import Report, Row, headline, metric
 from bench_matrix.store import CellRecord
 
 CELL_COLUMNS = ("key", "model", "framework", "backend", "strategy", "precision", "target")
@@ -39,7 +39,7 @@ def write_csv(records: list[CellRecord], report: Report, path: Path) -> Path:
 def csv_row(record: CellRecord, row: Row | None) -> dict[str, Any]:
     """The flat CSV fields of one record; `row` carries the baseline comparisons of an ok cell."""
     out: dict[str, Any] = {"key": record.cell.key, **record.cell.as_dict(), "status": record.status,
-                           "reason": last_line(record.reason)}
+                           "reason": headline(record.reason)}
     for name in ("size_bytes", "size_gzip_bytes", "params", "mse", "mae", "max_abs_diff_vs_baseline",
                  "throughput_sps", "batch_size", "peak_rss_mb", "convert_s", "load_s", "threads"):
         out[name] = _plain(metric(record, name))

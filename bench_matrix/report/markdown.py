@@ -19,7 +19,7 @@ from bench_matrix.report.columns import (
     run_line,
     sig,
 )
-from bench_matrix.report.summary import Environment, ModelSummary, Report, last_line, number
+from bench_matrix.report.summary import Environment, ModelSummary, Report, headline, number
 from bench_matrix.store import CellRecord
 
 _COLUMN_NOTES = ("Latency is measured one sample at a time after warm-up runs; p50/p90/p99 are percentiles "
@@ -94,7 +94,7 @@ def model_page(model: ModelSummary) -> str:
 
 
 def _failure(record: CellRecord) -> list[str]:
-    summary = f"<code>{html.escape(record.cell.key)}</code>: {html.escape(last_line(record.reason) or 'no reason')}"
+    summary = f"<code>{html.escape(record.cell.key)}</code>: {html.escape(headline(record.reason) or 'no reason')}"
     return [f"<details><summary>{summary}</summary>", "", *_fence(record.reason or "(no reason stored)"),
             "", "</details>", ""]
 

@@ -92,10 +92,10 @@ def p50(record: CellRecord) -> float | None:
     return metric(record, "latency_ms", "p50")
 
 
-def last_line(text: str | None) -> str:
-    """The last non-blank line of a (possibly multi-line) reason, or "" when there is none."""
+def headline(text: str | None) -> str:
+    """The first non-blank line of a reason (the error itself; the lines after it locate it), or ""."""
     lines = [line.strip() for line in (text or "").splitlines() if line.strip()]
-    return lines[-1] if lines else ""
+    return lines[0] if lines else ""
 
 
 def count(records: Iterable[CellRecord]) -> dict[str, int]:

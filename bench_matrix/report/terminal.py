@@ -22,7 +22,7 @@ from bench_matrix.report.columns import (
     mse_line,
     run_line,
 )
-from bench_matrix.report.summary import Environment, ModelSummary, Report, last_line
+from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
 from bench_matrix.store import CellRecord
 
 # Ways to lay out the results columns, tried in order until every table fits the console.
@@ -62,7 +62,7 @@ def _print_model(model: ModelSummary, console: Console) -> None:
     if model.skipped:
         console.print(_reasons_table(f"Skipped ({len(model.skipped)})", model.skipped, full=True, style="yellow"))
     if model.failed:
-        console.print(_reasons_table(f"Failed ({len(model.failed)}): last line of the reason",
+        console.print(_reasons_table(f"Failed ({len(model.failed)}): the error (full reason in the Markdown page)",
                                      model.failed, full=False, style="red"))
 
 
@@ -102,7 +102,7 @@ def _reasons_table(title: str, records: tuple[CellRecord, ...], full: bool, styl
     table.add_column("Method")
     table.add_column("Reason", overflow="fold")
     for record in records:
-        reason = (record.reason or "").strip() if full else last_line(record.reason)
+        reason = (record.reason or "").strip() if full else headline(record.reason)
         table.add_row(record.cell.label, Text(reason or "(no reason stored)"))
     return table
 

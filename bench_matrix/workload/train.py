@@ -35,7 +35,7 @@ def train_torch(factory: str, x: np.ndarray, y: np.ndarray, spec: TrainingSpec, 
             loss = torch.nn.functional.mse_loss(model(xt[idx]), yt[idx])
             loss.backward()
             optimiser.step()
-            total += float(loss) * len(idx)
+            total += loss.item() * len(idx)
         scheduler.step()
         losses.append(total / len(xt))
     train_s = time.perf_counter() - begin

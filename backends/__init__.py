@@ -1,0 +1,1 @@
+"""The built-in backends (pytorch, torchscript, onnxruntime), registered through entry points like any plugin."""

@@ -1,0 +1,241 @@
+"""ONNX Runtime on the CPU, CUDA or TensorRT, with fp16 conversion and int8 (QDQ) quantisation."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from bench_matrix import hardware
+from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
+from bench_matrix.matrix.spec import StrategySpec
+
+from ._common import CALIBRATION_BATCH, batches, calibration_data, check_static_options, conversion_step, \
+    installed_versions
+from ._torch import quiet_torch
+
+if TYPE_CHECKING:
+    import onnx
+    import onnxruntime
+
+FILE = "model.onnx"
+OPSET = 17
+PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider",
+             "tensorrt": "TensorrtExecutionProvider"}
+# Every distribution that installs the `onnxruntime` module; whichever is installed is the one reported.
+DISTRIBUTIONS = ("onnxruntime", "onnxruntime-gpu", "onnxruntime-directml", "onnxruntime-openvino")
+# quantize_static's own calibrator settings. "entropy" is not offered: ORT 1.31's entropy histogram (128 bins
+# for 128 quantised bins) leaves the KL search one candidate, the full range, so it would calibrate exactly like
+# "minmax" under another name.
+METHODS = {"minmax": "MinMax", "percentile": "Percentile"}
+
+
+class OnnxRuntimeBackend(Backend):
+    """Exports PyTorch models to ONNX (or takes ONNX files as given) and runs them with ONNX Runtime."""
+
+    name = "onnxruntime"
+    description = "ONNX Runtime: CPU, CUDA and TensorRT providers; fp16 conversion, int8 QDQ quantisation"
+    supports = (Support(("pytorch", "onnx"), ("none",), ("fp32", "fp16"), ("cpu", "cuda", "tensorrt")),
+                Support(("pytorch", "onnx"), ("ptq_dynamic", "ptq_static"), ("int8",), ("cpu",)),
+                Support(("pytorch", "onnx"), ("ptq_static",), ("int8",), ("tensorrt",)))
+    baseline_for = ("onnx",)
+
+    def versions(self) -> dict[str, str]:
+        return installed_versions(*DISTRIBUTIONS, "onnx", "torch")
+
+    def probe(self, target: str, precision: str) -> str | None:
+        if target == "cpu":
+            return None
+        reasons = [reason] if (reason := hardware.no_gpu_reason()) else []
+        import onnxruntime as ort
+
+        available = ort.get_available_providers()
+        if PROVIDERS[target] not in available:
+            reasons.append(f"the installed {_package()} has no {PROVIDERS[target]} (it has "
+                           f"{', '.join(available)}); install onnxruntime-gpu in its place")
+        return "; ".join(reasons) or None
+
+    def convert(self, request: ConvertRequest) -> dict[str, Any]:
+        import onnx
+
+        step = conversion_step(request.strategy)
+        if step.kind == "ptq_static":
+            check_static_options(step, "ONNX Runtime", tuple(METHODS))
+        out = request.out_dir / FILE
+        with tempfile.TemporaryDirectory(prefix="bench-matrix-ort-") as tmp:
+            model = _fp32_model(request, Path(tmp))
+            input_name, batch = _single_input(model, request.source.path)
+            quantisation = None
+            if step.kind in ("ptq_dynamic", "ptq_static"):
+                prepared = _pre_process(model, Path(tmp))
+                quantisation = (_quantise_dynamic(prepared, step, out) if step.kind == "ptq_dynamic"
+                                else _quantise_static(prepared, step, request, input_name, batch))
+            elif request.precision == "fp16" and request.target != "tensorrt":
+                from onnxruntime.transformers.float16 import convert_float_to_float16
+
+                onnx.save(convert_float_to_float16(model, keep_io_types=True), str(out))
+            else:  # fp32, and fp16 on TensorRT, which builds its fp16 engine from the fp32 model
+                onnx.save(model, str(out))
+        opset = _opset(onnx.load(str(out), load_external_data=False))
+        return {"file": FILE, "input_name": input_name, "opset": opset,
+                "strategy": step.kind, "quantization": quantisation}
+
+    def load(self, artifact_dir: Path, meta: dict[str, Any], target: str, precision: str,
+             threads: int) -> Session:
+        import onnxruntime as ort
+
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = threads
+        options.inter_op_num_threads = 1
+        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        session = ort.InferenceSession(str(artifact_dir / meta["file"]), options,
+                                       providers=_providers(target, precision))
+        wanted, got = PROVIDERS[target], session.get_providers()
+        if got[0] != wanted:
+            why = (f"{_package()} has {wanted} but it failed to initialise: check that the CUDA, cuDNN and "
+                   f"TensorRT libraries match its build (ONNX Runtime's warnings say which)"
+                   if wanted in ort.get_available_providers()
+                   else f"{_package()} has no {wanted}: install onnxruntime-gpu in its place")
+            raise RuntimeError(f"asked ONNX Runtime for {wanted} (target {target}) but the session runs on "
+                               f"{got}, as ONNX Runtime falls back silently; {why}")
+        return OrtSession(session, meta["input_name"])
+
+
+class OrtSession(Session):
+    """An InferenceSession with a single float32 input; execute is one sess.run and nothing else."""
+
+    def __init__(self, session: "onnxruntime.InferenceSession", input_name: str):
+        self._session = session
+        self._run = session.run
+        self._input = input_name
+
+    def prepare(self, x: np.ndarray) -> dict[str, np.ndarray]:
+        return {self._input: np.ascontiguousarray(x, dtype=np.float32)}
+
+    def execute(self, prepared: dict[str, np.ndarray]) -> list[np.ndarray]:
+        return self._run(None, prepared)
+
+    def fetch(self, outputs: list[np.ndarray]) -> np.ndarray:
+        return np.asarray(outputs[0], dtype=np.float32)
+
+    def info(self) -> dict[str, Any]:
+        return {"providers": self._session.get_providers(),
+                "threads": self._session.get_session_options().intra_op_num_threads}
+
+
+def _package() -> str:
+    """The installed ONNX Runtime distribution, e.g. 'onnxruntime 1.31.1'."""
+    found = installed_versions(*DISTRIBUTIONS)
+    return " ".join(next(iter(found.items()))) if found else "onnxruntime"
+
+
+def _providers(target: str, precision: str) -> list[Any]:
+    if target == "cpu":
+        return [PROVIDERS["cpu"]]
+    gpu = [PROVIDERS["cuda"], PROVIDERS["cpu"]]  # nodes a GPU provider lacks run on the next one
+    if target == "cuda":
+        return gpu
+    return [(PROVIDERS["tensorrt"], {"trt_fp16_enable": precision == "fp16",
+                                     "trt_int8_enable": precision == "int8"}), *gpu]
+
+
+def _fp32_model(request: ConvertRequest, tmp: Path) -> "onnx.ModelProto":
+    """The fp32 ONNX model: a PyTorch source exported with a dynamic batch axis, or the ONNX source as is."""
+    import onnx
+
+    source = request.source
+    if source.framework == "onnx":
+        return onnx.load(str(source.load()))  # external data, if any, is read in too
+    import torch
+
+    path = tmp / "exported.onnx"
+    generator = torch.Generator().manual_seed(request.seed)
+    example = torch.rand((2, *source.input_shape), generator=generator)
+    with quiet_torch(captured=source.format == "torch_export"), torch.no_grad():
+        module = source.load()
+        if source.format == "torch_export":  # the TorchScript-based exporter cannot call .train() on it
+            module = torch.jit.trace(module, example)
+        torch.onnx.export(module, (example,), str(path), dynamo=False, opset_version=OPSET,
+                          input_names=["input"], output_names=["output"],
+                          dynamic_axes={"input": {0: "batch"}, "output": {0: "batch"}})
+    return onnx.load(str(path))
+
+
+def _single_input(model: "onnx.ModelProto", path: Path) -> tuple[str, int | None]:
+    """The name of the model's one input and its fixed batch size (None when the batch axis is dynamic)."""
+    initializers = {init.name for init in model.graph.initializer}
+    inputs = [i for i in model.graph.input if i.name not in initializers]
+    if len(inputs) != 1:
+        raise ValueError(f"{path}: the model has {len(inputs)} inputs ({', '.join(i.name for i in inputs)}); "
+                         f"bench-matrix feeds exactly one image tensor")
+    dims = inputs[0].type.tensor_type.shape.dim
+    return inputs[0].name, (dims[0].dim_value or None) if dims else None
+
+
+def _opset(model: "onnx.ModelProto") -> int:
+    return next(o.version for o in model.opset_import if o.domain in ("", "ai.onnx"))
+
+
+def _pre_process(model: "onnx.ModelProto", tmp: Path) -> Path:
+    """The model after ONNX Runtime's recommended pre-quantisation pass (shape inference, optimisation)."""
+    import onnx
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    fp32, prepared = tmp / "fp32.onnx", tmp / "prepared.onnx"
+    onnx.save(model, str(fp32))
+    quant_pre_process(str(fp32), str(prepared))
+    return prepared
+
+
+def _quantise_dynamic(model: Path, step: StrategySpec, out: Path) -> dict[str, Any]:
+    from onnxruntime.quantization import QuantType, quantize_dynamic
+
+    per_channel = bool(step.options.get("per_channel", False))
+    # MatMul/Gemm only, like torch's dynamic quantisation of nn.Linear: ORT's ConvInteger is several times
+    # slower than its fp32 convolution. Activations are quantised to uint8 at run time; 7-bit weights keep
+    # AVX2's u8 x s8 pair sums within int16.
+    ops = ["MatMul", "Gemm"]
+    quantize_dynamic(model, out, op_types_to_quantize=ops, per_channel=per_channel, reduce_range=True,
+                     weight_type=QuantType.QInt8)
+    return {"ops": ops, "activations": "QUInt8 (dynamic)", "weights": "QInt8", "reduce_range": True,
+            "per_channel": per_channel}
+
+
+def _quantise_static(model: Path, step: StrategySpec, request: ConvertRequest, input_name: str,
+                     batch: int | None) -> dict[str, Any]:
+    from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, \
+        quantize_static
+
+    data = calibration_data(request, step)
+    if batch:  # a fixed batch size: whole batches only
+        data = data[:len(data) - len(data) % batch]
+        if len(data) == 0:
+            raise ValueError(f"{request.source.path} takes batches of exactly {batch}: raise "
+                             f"calibration_samples to at least {batch}")
+    else:  # equal batches: the entropy and percentile calibrators cannot merge ragged ones
+        batch = max(d for d in range(1, CALIBRATION_BATCH + 1) if len(data) % d == 0)
+
+    class Reader(CalibrationDataReader):
+        def __init__(self) -> None:
+            self._feeds = iter([{input_name: b} for b in batches(data, batch)])
+
+        def get_next(self) -> dict[str, np.ndarray] | None:
+            return next(self._feeds, None)
+
+    per_channel = bool(step.options.get("per_channel", False))
+    method = step.options.get("method", "minmax")
+    if request.target == "tensorrt":  # TensorRT takes symmetric int8 (zero point 0) activations and weights
+        activations, reduce_range = QuantType.QInt8, False
+        extra = {"ActivationSymmetric": True, "WeightSymmetric": True}
+    else:  # x86 without VNNI: u8 activations and 7-bit s8 weights keep VPMADDUBSW's int16 pair sums unsaturated
+        activations, reduce_range, extra = QuantType.QUInt8, True, {}
+    quantize_static(model, request.out_dir / FILE, Reader(), quant_format=QuantFormat.QDQ,
+                    per_channel=per_channel, reduce_range=reduce_range, activation_type=activations,
+                    weight_type=QuantType.QInt8, calibrate_method=getattr(CalibrationMethod, METHODS[method]),
+                    extra_options=extra)
+    return {"format": "QDQ", "activations": activations.name, "weights": "QInt8",
+            "reduce_range": reduce_range, "per_channel": per_channel, "method": method, **extra,
+            "calibration_samples": len(data)}

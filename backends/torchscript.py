@@ -1,0 +1,115 @@
+"""TorchScript (torch.jit.trace), optionally int8-quantised first with torch.ao (dynamic, or FX static)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
+from bench_matrix.matrix.spec import StrategySpec
+
+from ._common import batches, calibration_data, check_static_options, conversion_step
+from ._torch import TorchSession, pin_threads, place, probe_torch, quiet_torch, torch_versions, use_engine
+
+if TYPE_CHECKING:
+    import torch
+
+FILE = "model.pt"
+
+
+class TorchScriptBackend(Backend):
+    """Traces the model to TorchScript; int8 strategies quantise it with torch.ao before tracing."""
+
+    name = "torchscript"
+    description = "TorchScript via torch.jit.trace; int8 by torch.ao dynamic or FX static quantisation"
+    supports = (Support(("pytorch",), ("none",), ("fp32",), ("cpu",)),
+                Support(("pytorch",), ("ptq_dynamic", "ptq_static"), ("int8",), ("cpu",)),
+                Support(("pytorch",), ("none",), ("fp32", "fp16"), ("cuda",)))
+
+    def versions(self) -> dict[str, str]:
+        return torch_versions()
+
+    def probe(self, target: str, precision: str) -> str | None:
+        return probe_torch(target)
+
+    def convert(self, request: ConvertRequest) -> dict[str, Any]:
+        import torch
+
+        step = conversion_step(request.strategy)
+        if step.kind != "none":
+            _check_quantisable(request, step)
+        torch.set_num_threads(request.threads)
+        meta: dict[str, Any] = {"file": FILE, "strategy": step.kind}
+        with quiet_torch(captured=step.kind != "none" or request.source.format == "torch_export"):
+            module = request.source.load()
+            if step.kind != "none":
+                module, meta["quantization"] = _quantise(module, step, request)
+            module = place(module, request.target, request.precision)
+            device = "cuda" if request.target == "cuda" else "cpu"
+            dtype = torch.float16 if request.precision == "fp16" else torch.float32
+            generator = torch.Generator().manual_seed(request.seed)
+            # A batch of 2, not 1, so that nothing in the trace specialises on a size-1 batch.
+            example = torch.rand((2, *request.source.input_shape), generator=generator).to(device, dtype)
+            if not isinstance(module, torch.jit.ScriptModule):  # a TorchScript source is saved as it is
+                with torch.no_grad():
+                    module = torch.jit.trace(module, example)
+            module.save(str(request.out_dir / FILE))
+        return meta
+
+    def load(self, artifact_dir: Path, meta: dict[str, Any], target: str, precision: str,
+             threads: int) -> Session:
+        import torch
+
+        pin_threads(threads)
+        if "quantization" in meta:
+            use_engine(meta["quantization"]["engine"])
+        with quiet_torch():
+            module = torch.jit.load(str(artifact_dir / meta["file"]),
+                                    map_location="cuda" if target == "cuda" else "cpu")
+        return TorchSession(module.eval(), target, precision)
+
+
+def _check_quantisable(request: ConvertRequest, step: StrategySpec) -> None:
+    """Fail early, with the fix, on what torch.ao cannot quantise."""
+    source = request.source
+    if source.format != "state_dict":
+        kind = {"torchscript": "a TorchScript file", "torch_export": "a torch.export program"}[source.format]
+        raise ValueError(f"{step.kind} in the torchscript backend quantises an nn.Module (torch.ao swaps its "
+                         f"layers; FX traces its Python code), but {source.path} is {kind}; give the model "
+                         f"as factory + weights (a state_dict) to quantise it")
+    if step.kind == "ptq_static":
+        check_static_options(step, "torch.ao", ("minmax",))
+
+
+def _quantise(module: "torch.nn.Module", step: StrategySpec,
+              request: ConvertRequest) -> tuple["torch.nn.Module", dict[str, Any]]:
+    """The int8 module and a record of how it was quantised."""
+    import torch
+    from torch.ao import quantization as tq
+
+    engine = use_engine()
+    per_channel = bool(step.options.get("per_channel", False))
+    settings: dict[str, Any] = {"engine": engine, "per_channel": per_channel, "weights": "qint8"}
+    if step.kind == "ptq_dynamic":
+        qconfig = tq.per_channel_dynamic_qconfig if per_channel else tq.default_dynamic_qconfig
+        settings["layers"] = ["Linear"]
+        return tq.quantize_dynamic(module, {torch.nn.Linear: qconfig}, dtype=torch.qint8), settings
+
+    from torch.ao.quantization.quantize_fx import convert_fx, prepare_fx
+
+    # minmax calibration; activations quint8 in [0, 127] as the x86/fbgemm kernels expect (no saturation).
+    activation = tq.MinMaxObserver.with_args(dtype=torch.quint8, quant_min=0, quant_max=127)
+    weight = tq.default_per_channel_weight_observer if per_channel else tq.default_weight_observer
+    mapping = tq.get_default_qconfig_mapping(engine).set_global(tq.QConfig(activation=activation, weight=weight))
+    data = calibration_data(request, step)
+    example = (torch.from_numpy(data[:1]),)
+    try:
+        prepared = prepare_fx(module, mapping, example_inputs=example)
+    except Exception as exc:  # symbolic tracing fails on data-dependent Python control flow
+        raise ValueError(f"FX graph mode cannot trace {request.source.name} for static quantisation: "
+                         f"{type(exc).__name__}: {exc}") from exc
+    with torch.no_grad():
+        for batch in batches(data):
+            prepared(torch.from_numpy(batch))
+    settings.update(activations="quint8 [0, 127]", method="minmax", calibration_samples=len(data))
+    return convert_fx(prepared), settings
