@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from bench_matrix import hardware
-from bench_matrix.backends.base import Session
+from bench_matrix.backends.base import Backend, Session
 
 from ._common import installed_versions
 
@@ -115,3 +115,13 @@ class TorchSession(Session):
     def info(self) -> dict[str, Any]:
         return {"device": str(self._device), "threads": self._torch.get_num_threads(),
                 "interop_threads": self._torch.get_num_interop_threads()}
+
+
+class TorchBackend(Backend):
+    """What the PyTorch-runtime backends share: their library versions and their probe."""
+
+    def versions(self) -> dict[str, str]:
+        return torch_versions()
+
+    def probe(self, target: str, precision: str) -> str | None:
+        return probe_torch(target)

@@ -6,14 +6,14 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
+from bench_matrix.backends.base import ConvertRequest, Session, Support
 from bench_matrix.sources import SourceModel
 
 from ._common import conversion_step
-from ._torch import TorchSession, pin_threads, place, probe_torch, torch_versions
+from ._torch import TorchBackend, TorchSession, pin_threads, place
 
 
-class PyTorchBackend(Backend):
+class PyTorchBackend(TorchBackend):
     """The source model as it is, run eagerly under torch.inference_mode()."""
 
     name = "pytorch"
@@ -21,12 +21,6 @@ class PyTorchBackend(Backend):
     supports = (Support(("pytorch",), ("none",), ("fp32",), ("cpu",)),
                 Support(("pytorch",), ("none",), ("fp32", "fp16"), ("cuda",)))
     baseline_for = ("pytorch",)
-
-    def versions(self) -> dict[str, str]:
-        return torch_versions()
-
-    def probe(self, target: str, precision: str) -> str | None:
-        return probe_torch(target)
 
     def convert(self, request: ConvertRequest) -> dict[str, Any]:
         step = conversion_step(request.strategy)

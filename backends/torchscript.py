@@ -5,11 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
+from bench_matrix.backends.base import ConvertRequest, Session, Support
 from bench_matrix.matrix.spec import StrategySpec
 
 from ._common import batches, calibration_data, check_static_options, conversion_step
-from ._torch import TorchSession, pin_threads, place, probe_torch, quiet_torch, torch_versions, use_engine
+from ._torch import TorchBackend, TorchSession, pin_threads, place, quiet_torch, use_engine
 
 if TYPE_CHECKING:
     import torch
@@ -17,7 +17,7 @@ if TYPE_CHECKING:
 FILE = "model.pt"
 
 
-class TorchScriptBackend(Backend):
+class TorchScriptBackend(TorchBackend):
     """Traces the model to TorchScript; int8 strategies quantise it with torch.ao before tracing."""
 
     name = "torchscript"
@@ -25,12 +25,6 @@ class TorchScriptBackend(Backend):
     supports = (Support(("pytorch",), ("none",), ("fp32",), ("cpu",)),
                 Support(("pytorch",), ("ptq_dynamic", "ptq_static"), ("int8",), ("cpu",)),
                 Support(("pytorch",), ("none",), ("fp32", "fp16"), ("cuda",)))
-
-    def versions(self) -> dict[str, str]:
-        return torch_versions()
-
-    def probe(self, target: str, precision: str) -> str | None:
-        return probe_torch(target)
 
     def convert(self, request: ConvertRequest) -> dict[str, Any]:
         import torch

@@ -6,6 +6,7 @@ from pathlib import Path
 
 from rich.console import Console
 from rich.markup import escape
+from rich.padding import Padding
 from rich.table import Table
 
 from bench_matrix.backends.registry import available
@@ -56,28 +57,33 @@ def show_plan(console: Console, matrix: Matrix, ws: Workspace, planned: Planned,
 
 
 def show_backends(console: Console, ws: Workspace) -> None:
-    """Every installed backend, its package, its capabilities, and per target whether this machine runs it."""
-    names = list(available())
-    outcome = run_job({"mode": "probe", "backends": names, "keys": "declared"}, ws.root / "jobs", ws.logs / "probe.log",
-                      PROBE_TIMEOUT_S)
+    """Every installed backend: its package, what it supports, and per target whether this machine runs it."""
+    entries = available()
+    outcome = run_job({"mode": "probe", "backends": list(entries), "keys": "declared"}, ws.root / "jobs",
+                      ws.logs / "probe.log", PROBE_TIMEOUT_S)
     if not outcome.ok:
-        console.print(f"[red]probing failed:[/] {outcome.error}")
+        console.print(f"[red]probing the backends failed:[/] {escape(outcome.error or '')}")
         return
     described, verdicts = outcome.value["backends"], outcome.value["verdicts"]
-    table = Table(title="installed backends", show_lines=True)
-    for column in ("backend", "package", "supports (strategy/precision/target)", *TARGETS):
-        table.add_column(column, overflow="fold")
-    entries = available()
-    for name in names:
+    for name, entry in entries.items():
         info = described[name]
+        console.print(f"[bold]{name}[/]  [dim]{escape(entry.distribution)} · {escape(entry.value)}[/]")
         if info.get("error"):
-            table.add_row(name, entries[name].distribution, "", *([f"[red]{escape(info['error'])}[/]"] * len(TARGETS)))
+            console.print(f"  [red]cannot be loaded:[/] {escape(info['error'])}\n")
             continue
-        supports = "\n".join(f"{'/'.join(s['frameworks'])}: {', '.join(s['strategies'])} · "
-                             f"{', '.join(s['precisions'])} · {', '.join(s['targets'])}" for s in info["supports"])
-        cells = [_target_status(name, target, verdicts) for target in TARGETS]
-        table.add_row(f"[bold]{name}[/]\n{escape(info['description'])}", entries[name].distribution, supports, *cells)
-    console.print(table)
+        console.print(f"  {escape(info['description'])}")
+        if info["baseline_for"]:
+            console.print(f"  fp32 baseline of {', '.join(info['baseline_for'])} models")
+        grid = Table.grid(padding=(0, 2))
+        grid.add_column(style="dim")
+        grid.add_column(overflow="fold")
+        for s in info["supports"]:
+            grid.add_row("supports", f"{'/'.join(s['frameworks'])}: {', '.join(s['strategies'])} at "
+                                     f"{', '.join(s['precisions'])} on {', '.join(s['targets'])}")
+        for target in TARGETS:
+            grid.add_row(target, _target_status(name, target, verdicts))
+        grid.add_row("versions", escape(", ".join(f"{k} {v}" for k, v in info["versions"].items()) or "—"))
+        console.print(Padding(grid, (0, 0, 1, 2)))
 
 
 def _target_status(backend: str, target: str, verdicts: dict[str, dict]) -> str:

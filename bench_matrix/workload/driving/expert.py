@@ -14,13 +14,12 @@ W_RANGE = (-7.1, 7.1)  # turn-command label range of the reference study
 
 @dataclass(frozen=True)
 class ExpertController:
-    """Steers toward a centreline point `lookahead` metres ahead; slows for the sharpest bend in view."""
+    """Steers toward a centreline point `lookahead` metres ahead; its speed keeps lateral acceleration bounded."""
 
     lookahead: float = 9.0  # metres of arc ahead of the nearest centreline point
     w_gain: float = 70.0  # w label units per 1/m of commanded path curvature
-    preview: tuple[float, float] = (2.0, 30.0)  # arc window ahead scanned for curvature, metres
-    straight: float = 0.006  # |curvature| (1/m) at or below which the car drives at full speed
-    sharp: float = 0.045  # |curvature| at or above which it drives at minimum speed
+    preview: tuple[float, float] = (3.0, 20.0)  # arc window ahead whose mean |curvature| limits speed, metres
+    lateral_accel: float = 3.9  # m/s^2 allowed on the commanded path and on the bend ahead
 
     def command(self, circuit: Circuit, pose: Pose) -> tuple[float, float]:
         """Return the clipped (v, w) command for a car at pose (x, y, yaw) on the circuit."""
@@ -36,7 +35,6 @@ class ExpertController:
         w = float(np.clip(self.w_gain * path_curvature, *W_RANGE))
 
         window = where.s + direction * np.linspace(*self.preview, 30)
-        bend = float(np.abs(circuit.curvature(window)).max())
-        sharpness = np.clip((bend - self.straight) / (self.sharp - self.straight), 0.0, 1.0)
-        v = float(V_RANGE[1] - sharpness * (V_RANGE[1] - V_RANGE[0]))
+        bend = max(float(np.abs(circuit.curvature(window)).mean()), abs(path_curvature), 1e-9)
+        v = float(np.clip(np.sqrt(self.lateral_accel / bend), *V_RANGE))
         return v, w
