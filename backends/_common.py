@@ -7,7 +7,6 @@ from importlib.metadata import PackageNotFoundError, version
 import numpy as np
 
 from bench_matrix.backends.base import ConvertRequest
-from bench_matrix.matrix.schema import STRATEGY_KINDS
 from bench_matrix.matrix.spec import StrategySpec
 
 CALIBRATION_BATCH = 32
@@ -25,29 +24,15 @@ def installed_versions(*distributions: str) -> dict[str, str]:
     return found
 
 
-def conversion_step(strategy: StrategySpec) -> StrategySpec:
-    """The strategy's single conversion-stage step (kind 'none' when it has none, e.g. after training steps)."""
-    steps = [s for s in _leaves(strategy)
-             if s.kind != "none" and STRATEGY_KINDS.get(s.kind or "", {}).get("stage") == "conversion"]
-    if len(steps) > 1:
-        raise ValueError(f"strategy {strategy.name!r} combines several conversion steps "
-                         f"({', '.join(str(s.kind) for s in steps)}); a backend applies at most one")
-    return steps[0] if steps else StrategySpec(name="none", kind="none")
-
-
-def _leaves(spec: StrategySpec) -> list[StrategySpec]:
-    return [leaf for step in spec.steps for leaf in _leaves(step)] if spec.steps else [spec]
-
-
-def check_static_options(step: StrategySpec, runtime: str, methods: tuple[str, ...]) -> None:
-    """Reject ptq_static options the runtime cannot honour, before any work is done."""
+def static_options_reason(step: StrategySpec, runtime: str, methods: tuple[str, ...]) -> str | None:
+    """Why the runtime cannot honour these ptq_static options, or None."""
     if step.options.get("io", "float") != "float":
-        raise ValueError(f"{runtime} int8 models take and return float tensors: io: int8 is not available "
-                         f"with this backend; remove the option or use io: float")
+        return (f"{runtime} int8 models take and return float tensors: io: int8 is not available "
+                f"with this backend; remove the option or use io: float")
     method = step.options.get("method", "minmax")
     if method not in methods:
-        raise ValueError(f"{runtime} static quantisation calibrates with {' or '.join(methods)}, "
-                         f"not {method!r}; set method to one of those")
+        return f"{runtime} static quantisation calibrates with {' or '.join(methods)}, not {method!r}"
+    return None
 
 
 def calibration_data(request: ConvertRequest, step: StrategySpec) -> np.ndarray:

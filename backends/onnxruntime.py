@@ -10,9 +10,10 @@ import numpy as np
 
 from bench_matrix import hardware
 from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
+from bench_matrix.matrix.expand import conversion_step
 from bench_matrix.matrix.spec import StrategySpec
 
-from ._common import CALIBRATION_BATCH, batches, calibration_data, check_static_options, conversion_step, \
+from ._common import CALIBRATION_BATCH, batches, calibration_data, static_options_reason, \
     installed_versions
 from ._torch import quiet_torch
 
@@ -57,12 +58,15 @@ class OnnxRuntimeBackend(Backend):
                            f"{', '.join(available)}); install onnxruntime-gpu in its place")
         return "; ".join(reasons) or None
 
+    def option_reason(self, step: StrategySpec, source_format: str) -> str | None:
+        return static_options_reason(step, "ONNX Runtime", tuple(METHODS)) if step.kind == "ptq_static" else None
+
     def convert(self, request: ConvertRequest) -> dict[str, Any]:
         import onnx
 
         step = conversion_step(request.strategy)
-        if step.kind == "ptq_static":
-            check_static_options(step, "ONNX Runtime", tuple(METHODS))
+        if reason := self.option_reason(step, request.source.format):
+            raise ValueError(reason)
         out = request.out_dir / FILE
         with tempfile.TemporaryDirectory(prefix="bench-matrix-ort-") as tmp:
             model = _fp32_model(request, Path(tmp))

@@ -7,9 +7,9 @@ from pathlib import Path
 from typing import Any
 
 from bench_matrix.backends.base import ConvertRequest, Session, Support
+from bench_matrix.matrix.expand import conversion_step
 from bench_matrix.sources import SourceModel
 
-from ._common import conversion_step
 from ._torch import TorchBackend, TorchSession, pin_threads, place
 
 

@@ -6,9 +6,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bench_matrix.backends.base import ConvertRequest, Session, Support
+from bench_matrix.matrix.expand import conversion_step
 from bench_matrix.matrix.spec import StrategySpec
 
-from ._common import batches, calibration_data, check_static_options, conversion_step
+from ._common import batches, calibration_data, static_options_reason
 from ._torch import TorchBackend, TorchSession, pin_threads, place, quiet_torch, use_engine
 
 if TYPE_CHECKING:
@@ -26,12 +27,24 @@ class TorchScriptBackend(TorchBackend):
                 Support(("pytorch",), ("ptq_dynamic", "ptq_static"), ("int8",), ("cpu",)),
                 Support(("pytorch",), ("none",), ("fp32", "fp16"), ("cuda",)))
 
+    def option_reason(self, step: StrategySpec, source_format: str) -> str | None:
+        """torch.ao quantises an nn.Module (a state_dict source) and calibrates with min-max only."""
+        if step.kind == "none":
+            return None
+        if source_format != "state_dict":
+            kind = {"torchscript": "a TorchScript file", "torch_export": "a torch.export program"}.get(
+                source_format, source_format)
+            return (f"{step.kind} in the torchscript backend quantises an nn.Module (torch.ao swaps its layers; "
+                    f"FX traces its Python code), but this model is {kind}; give it as factory + weights "
+                    f"(a state_dict) to quantise it")
+        return static_options_reason(step, "torch.ao", ("minmax",)) if step.kind == "ptq_static" else None
+
     def convert(self, request: ConvertRequest) -> dict[str, Any]:
         import torch
 
         step = conversion_step(request.strategy)
-        if step.kind != "none":
-            _check_quantisable(request, step)
+        if reason := self.option_reason(step, request.source.format):
+            raise ValueError(reason)
         torch.set_num_threads(request.threads)
         meta: dict[str, Any] = {"file": FILE, "strategy": step.kind}
         with quiet_torch(captured=step.kind != "none" or request.source.format == "torch_export"):
@@ -61,18 +74,6 @@ class TorchScriptBackend(TorchBackend):
             module = torch.jit.load(str(artifact_dir / meta["file"]),
                                     map_location="cuda" if target == "cuda" else "cpu")
         return TorchSession(module.eval(), target, precision)
-
-
-def _check_quantisable(request: ConvertRequest, step: StrategySpec) -> None:
-    """Fail early, with the fix, on what torch.ao cannot quantise."""
-    source = request.source
-    if source.format != "state_dict":
-        kind = {"torchscript": "a TorchScript file", "torch_export": "a torch.export program"}[source.format]
-        raise ValueError(f"{step.kind} in the torchscript backend quantises an nn.Module (torch.ao swaps its "
-                         f"layers; FX traces its Python code), but {source.path} is {kind}; give the model "
-                         f"as factory + weights (a state_dict) to quantise it")
-    if step.kind == "ptq_static":
-        check_static_options(step, "torch.ao", ("minmax",))
 
 
 def _quantise(module: "torch.nn.Module", step: StrategySpec,

@@ -53,7 +53,8 @@ def _parser() -> argparse.ArgumentParser:
 
     plan = sub.add_parser("plan", help="expand the matrix and show what run would do with each cell")
     plan.add_argument("matrix", type=Path)
-    plan.add_argument("--results", type=Path, help="mark cells already stored in this results file")
+    plan.add_argument("--results", type=Path, help="mark cells already stored in this results file "
+                                                   "(default: WORKSPACE/results.sqlite)")
     _filters(plan)
     plan.set_defaults(handler=_plan)
 

@@ -9,6 +9,12 @@ class UserError(Exception):
     exit_code = 2
 
 
+class StepError(UserError):
+    """A step every cell depends on failed (e.g. building the dataset): reported without traceback, exit 1."""
+
+    exit_code = 1
+
+
 class MatrixError(UserError):
     """One or more problems in a matrix file, each already located (file:line: key: message)."""
 

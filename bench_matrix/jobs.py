@@ -46,22 +46,24 @@ def probe(job: dict[str, Any]) -> dict[str, Any]:
         except BackendLoadError as exc:
             backends[name], described[name] = None, {"error": str(exc)}
     keys = job["keys"]
-    if keys == "declared":  # every combination the loaded backends declare
-        keys = [(n, f, st, p, t) for n, b in backends.items() if b for s in b.supports for f in s.frameworks
-                for st in s.strategies for p in s.precisions for t in s.targets]
+    if keys == "declared":  # every combination the loaded backends declare, for a default source
+        keys = [(n, f, st, p, t, "state_dict" if f == "pytorch" else f, "{}") for n, b in backends.items() if b
+                for s in b.supports for f in s.frameworks for st in s.strategies for p in s.precisions
+                for t in s.targets]
     verdicts = {}
     for key in keys:
-        name, framework, kind, precision, target = key
+        name, framework, kind, precision, target, source_format, options = key
         b = backends[name]
         if b is None:
-            verdicts["|".join(key)] = {"invalid": None, "skip": described[name]["error"]}
+            verdicts[json.dumps(key)] = {"invalid": None, "skip": described[name]["error"]}
             continue
-        invalid = b.invalid_reason(framework, kind, precision, target)
+        invalid = (b.invalid_reason(framework, kind, precision, target)
+                   or b.option_reason(StrategySpec(name=kind, kind=kind, options=json.loads(options)), source_format))
         try:
             skip = None if invalid else b.probe(target, precision)
         except Exception as exc:  # a probe that crashes is a reason, not a crash of the run
             skip = f"probing {name} for {target}/{precision} failed: {type(exc).__name__}: {exc}"
-        verdicts["|".join(key)] = {"invalid": invalid, "skip": skip}
+        verdicts[json.dumps(key)] = {"invalid": invalid, "skip": skip}
     return {"backends": described, "verdicts": verdicts}
 
 
@@ -77,7 +79,8 @@ def prepare_model(job: dict[str, Any]) -> dict[str, Any]:
     ws = Workspace(Path(job["workspace"]))
     ddir, dinfo, settings = Path(job["dataset_dir"]), job["dataset_info"], job["settings"]
     key = digest({"model": spec, "dataset": dinfo["fingerprint"], "seed": settings.seed,
-                  "eval": settings.eval_samples, "files": _spec_files_sha(spec), "format": 1})
+                  "eval": settings.eval_samples, "files": _spec_files_sha(spec), "format": 1,
+                  "baseline": [job["baseline_backend"], environment.library_versions()]})
     out = ws.models(key)
     if (out / "prepared.json").is_file():
         return json.loads((out / "prepared.json").read_text())
@@ -142,7 +145,8 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
                "batch_size": settings.batch_size, "peak_rss_mb": round(peak_rss_mb, 1),
                "convert_s": manifest["convert_s"], "load_s": load_s, "threads": settings.threads,
                "artifact_cached": job["cached"], "session": session.info(), "test_samples": int(len(y))}
-    return {"metrics": metrics, "env": {**environment.capture(), "runtime": session.info()}}
+    return {"metrics": metrics, "env": {**environment.capture(), "backend_versions": backend.versions(),
+                                        "runtime": session.info()}}
 
 
 def predict_all(session: Session, x: np.ndarray, batch_size: int) -> np.ndarray:
@@ -171,7 +175,11 @@ def ensure_artifact(ws: Workspace, backend: Backend, source: SourceModel, strate
                              out_dir=tmp / "model", calibration=calibration, threads=settings.threads,
                              seed=settings.seed)
     begin = time.perf_counter()
-    meta = backend.convert(request)
+    try:
+        meta = backend.convert(request)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     convert_s = time.perf_counter() - begin
     manifest = {"meta": meta, "convert_s": convert_s, "params": _params(source),
                 "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -214,10 +222,7 @@ def _source(spec: ModelSpec, ws: Workspace, ddir: Path, dinfo: dict, preprocess:
         return (SourceModel(spec.name, "pytorch", "state_dict", weights, file_sha256(weights), shape,
                             factory=FACTORIES[spec.builtin]), json.loads(facts_file.read_text()))
     if spec.file:
-        from bench_matrix.matrix.load import MODEL_SUFFIXES
-
-        fmt = MODEL_SUFFIXES[spec.file.suffix.lower()][1]
-        return SourceModel(spec.name, spec.framework, fmt, spec.file, file_sha256(spec.file), shape), None
+        return SourceModel(spec.name, spec.framework, spec.source_format, spec.file, file_sha256(spec.file), shape), None
     assert spec.weights is not None and spec.factory is not None
     return (SourceModel(spec.name, "pytorch", "state_dict", spec.weights, file_sha256(spec.weights), shape,
                         factory=spec.factory, python_path=tuple(str(p) for p in spec.python_path)), None)

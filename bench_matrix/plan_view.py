@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from rich.console import Console
@@ -24,7 +25,9 @@ STATE_STYLE = {"run": "[green]will run[/]", "stored": "[cyan]stored[/]", "skip":
 def show_plan(console: Console, matrix: Matrix, ws: Workspace, planned: Planned, filters: Filters,
               results: Path | None) -> None:
     """Cells that will run, are stored, or are skipped (why); then the combinations that are not valid (why)."""
-    store = ResultStore(results) if results and results.is_file() else None
+    filters.check([p.cell for p in planned.expansion.cells])
+    results = results or ws.results
+    store = ResultStore(results) if results.is_file() else None
     runner = Runner(matrix, ws, store, console) if store else None
     cells = [p for p in planned.expansion.cells if filters.keep(p.cell)]
     table = Table(title=f"cells of {matrix.path}")
@@ -88,8 +91,9 @@ def show_backends(console: Console, ws: Workspace) -> None:
 
 def _target_status(backend: str, target: str, verdicts: dict[str, dict]) -> str:
     """ready / not supported / the skip reasons, with the precisions they concern."""
-    mine = {key.split("|")[3]: v["skip"] for key, v in verdicts.items()
-            if key.split("|")[0] == backend and key.split("|")[4] == target}
+    keys = {key: json.loads(key) for key in verdicts}
+    mine = {keys[key][3]: v["skip"] for key, v in verdicts.items()
+            if keys[key][0] == backend and keys[key][4] == target}
     if not mine:
         return "[dim]not supported[/]"
     blocked = {}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
@@ -11,8 +12,9 @@ from typing import Any
 from bench_matrix import __version__, data
 from bench_matrix.backends.registry import available
 from bench_matrix.cell import Cell, PlannedCell
-from bench_matrix.errors import UserError
+from bench_matrix.errors import StepError, UserError
 from bench_matrix.launcher import Outcome, run_job
+from bench_matrix.matrix.load import suggest
 from bench_matrix.matrix.expand import Expansion, Verdict, combinations, plan, verdict_key
 from bench_matrix.matrix.spec import Matrix, ModelSpec
 from bench_matrix.measure import env as environment
@@ -32,6 +34,14 @@ class Filters:
 
     def keep(self, cell: Cell) -> bool:
         return all(getattr(cell, key) in allowed for key, allowed in self.values.items())
+
+    def check(self, cells: list[Cell]) -> None:
+        """A filter value that no cell of the matrix has is a typo: say so, with what exists."""
+        for key, wanted in self.values.items():
+            present = sorted({getattr(c, key) for c in cells})
+            for value in sorted(wanted - set(present)):
+                raise UserError(f"--{key} {value}: no cell of the matrix has this {key}; it has "
+                                f"{', '.join(present)}{suggest(value, present)}")
 
 
 @dataclass(frozen=True)
@@ -55,7 +65,7 @@ def resolve(matrix: Matrix, workspace: Workspace) -> Planned:
                       workspace.logs / "probe.log", PROBE_TIMEOUT_S)
     if not outcome.ok:
         raise UserError(f"probing the installed backends failed: {outcome.error}")
-    verdicts = {tuple(k.split("|")): Verdict(**v) for k, v in outcome.value["verdicts"].items()}
+    verdicts = {tuple(json.loads(k)): Verdict(**v) for k, v in outcome.value["verdicts"].items()}
     return Planned(plan(matrix, cells, excluded, verdicts), outcome.value["backends"])
 
 
@@ -65,9 +75,11 @@ class Runner:
     def __init__(self, matrix: Matrix, workspace: Workspace, store: ResultStore, progress_console: Any):
         self.matrix, self.ws, self.store, self.console = matrix, workspace, store, progress_console
         self.dataset_fingerprint = data.fingerprint(matrix.dataset)
+        self.libraries = environment.library_versions()  # an upgraded runtime makes stored results stale
         self._dataset: dict[str, Any] | None = None
 
     def run(self, planned: Planned, filters: Filters, force: bool) -> dict[str, int]:
+        filters.check([p.cell for p in planned.expansion.cells])
         chosen = [p for p in planned.expansion.cells if p.state != "invalid" and filters.keep(p.cell)]
         if not chosen:
             raise UserError("no cell of the matrix matches the filters (see `bench-matrix plan`)")
@@ -76,7 +88,7 @@ class Runner:
         begin, started = time.monotonic(), _now()
         with RunProgress(self.console, len(todo)) as progress:
             skipped = [self._record(p.cell, "skipped", p.reason, _now()) for p in chosen
-                       if p.state == "skip" and not self.is_done(p.cell)]  # never replace a result measured elsewhere
+                       if p.state == "skip" and not self.is_done(p.cell)]  # keep a current ok result (e.g. from a GPU box)
             for record in skipped:
                 self.store.put(record)
             progress.skipped(skipped)
@@ -111,7 +123,9 @@ class Runner:
             outcome = self._job({"mode": "prepare_dataset", "dataset": self.matrix.dataset, **common},
                                 "dataset", PREPARE_TIMEOUT_S, progress)
             if not outcome.ok:
-                raise UserError(f"dataset: {outcome.error}") if outcome.user_error else RuntimeError(outcome.error)
+                error = UserError if outcome.user_error else StepError
+                raise error(f"dataset: {outcome.error}" + ("" if outcome.user_error else
+                                                          f"\n(full log: {self.ws.logs / 'dataset.log'})"))
             self._dataset = outcome.value
             self.store.put_fact("dataset", "info", outcome.value["info"])
         baseline = planned.baseline_backend(model.framework)
@@ -143,7 +157,7 @@ class Runner:
                            max(deadline - time.monotonic(), 1.0), settings.threads, progress.phase, progress.tick)
         if not measured.ok:
             return self._record(cell, "failed", f"measure: {measured.error}", started,
-                                artifact=converted.value["artifact_dir"])
+                                artifact=converted.value["artifact_dir"] + "/model")
         return self._record(cell, "ok", None, started, metrics=measured.value["metrics"],
                             env=measured.value["env"], artifact=converted.value["artifact_dir"] + "/model")
 
@@ -160,8 +174,10 @@ class Runner:
         model = self.matrix.model(cell.model)
         files = [file_sha256(p) for p in (model.file, model.weights) if p is not None]
         return digest({"cell": cell.key, "model": asdict(model), "files": files, "dataset": self.dataset_fingerprint,
+                       "libraries": self.libraries,
                        "strategy": self.matrix.strategies[cell.strategy].to_dict(),
-                       "settings": self.matrix.settings.to_dict(), "version": __version__})
+                       "settings": {k: v for k, v in self.matrix.settings.to_dict().items() if k != "timeout_s"},
+                       "version": __version__})
 
     def _record(self, cell: Cell, status: str, reason: str | None, started: str, metrics: dict | None = None,
                 env: dict | None = None, artifact: str | None = None) -> CellRecord:

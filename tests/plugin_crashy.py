@@ -21,3 +21,14 @@ class CrashyBackend(Backend):
 
     def load(self, artifact_dir, meta, target, precision, threads) -> Session:
         os.abort()
+
+
+class BrokenBackend(Backend):
+    """Forgets to implement `load`: it cannot be instantiated, which must not take other backends down."""
+
+    name = "broken"
+    description = "test plugin missing an abstract method"
+    supports = (Support(("pytorch",), ("none",), ("fp32",), ("cpu",)),)
+
+    def convert(self, request):
+        return {}

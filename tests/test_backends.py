@@ -289,7 +289,7 @@ def test_compiled_source_runs_as_is(name: str, fmt: str, request: pytest.Fixture
 def test_compiled_source_cannot_be_quantised_by_torch(fmt: str, kind: str, request: pytest.FixtureRequest,
                                                       tmp_path: Path) -> None:
     what = "a TorchScript file" if fmt == "torchscript" else "a torch.export program"
-    with pytest.raises(ValueError, match=f"is {what}; give the model as factory \\+ weights"):
+    with pytest.raises(ValueError, match=f"is {what}; give it as factory \\+ weights"):
         _convert(BACKENDS["torchscript"], request.getfixturevalue(f"{fmt}_source"), tmp_path, kind, "int8")
     assert list(tmp_path.iterdir()) == []
 

@@ -22,7 +22,8 @@ def install_plugin(root: Path) -> dict[str, str]:
     dist = site / "crashy_backend-0.1.dist-info"
     dist.mkdir(parents=True)
     (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: crashy-backend\nVersion: 0.1\n")
-    (dist / "entry_points.txt").write_text("[bench_matrix.backends]\ncrashy = plugin_crashy:CrashyBackend\n")
+    (dist / "entry_points.txt").write_text("[bench_matrix.backends]\ncrashy = plugin_crashy:CrashyBackend\n"
+                                           "broken = plugin_crashy:BrokenBackend\n")
     return {"PYTHONPATH": os.pathsep.join([str(site), str(TESTS), os.environ.get("PYTHONPATH", "")])}
 
 
@@ -80,6 +81,7 @@ def test_plugin_backend_that_crashes_fails_only_its_cell(tiny_project):
     env = install_plugin(tiny_project)
     listing = cli(tiny_project, "backends", env=env)
     assert "crashy" in listing.stdout and "crashy-backend 0.1" in listing.stdout
+    assert "cannot be loaded" in listing.stdout and "cannot be created: TypeError" in listing.stdout  # broken one
 
     (tiny_project / "m.yaml").write_text(matrix_text(["crashy", "pytorch"], ["none"], ["fp32"], ["cpu"]))
     run = cli(tiny_project, "run", "m.yaml", env=env)
@@ -148,6 +150,22 @@ def test_ctrl_c_stops_cleanly_with_exit_130(tiny_project):
     assert "interrupted" in output and "run the same command again to resume" in output
     assert "Traceback" not in output
     assert _workers_of(tiny_project / "ws") == []
+
+
+def test_plan_judges_strategy_options_and_filters_are_checked(tiny_project):
+    extra = "strategies:\n  int8_io: {kind: ptq_static, io: int8}\n  entropy: {kind: ptq_static, method: entropy}\n"
+    (tiny_project / "m.yaml").write_text(matrix_text(["torchscript", "onnxruntime"], ["int8_io", "entropy"],
+                                                     ["int8"], ["cpu"], extra))
+    plan = cli(tiny_project, "plan", "m.yaml")
+    assert plan.returncode == 0, plan.stderr
+    assert "0 will run" in plan.stdout and "4 not valid" in plan.stdout
+    assert "io: int8 is not available with this backend" in plan.stdout
+    assert "calibrates with minmax or percentile, not 'entropy'" in plan.stdout
+
+    typo = cli(tiny_project, "run", "m.yaml", "--backend", "onnxruntme")
+    assert typo.returncode == 2 and "Traceback" not in typo.stderr
+    assert "--backend onnxruntme: no cell of the matrix has this backend" in typo.stderr
+    assert "did you mean 'onnxruntime'?" in typo.stderr
 
 
 def test_user_errors_exit_2_without_traceback(tiny_project):

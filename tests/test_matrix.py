@@ -133,6 +133,14 @@ strategies:
     assert matrix.strategies["int8_io"].options == {"io": "int8"}
 
 
+def test_include_and_exclude_values_are_checked(tmp_path):
+    text = BASE + "exclude:\n  - {target: cpuu}\ninclude:\n  - {model: b, precision: fp8}\n"
+    found = problems(tmp_path, text)
+    assert any("exclude[0].target: 'cpuu' is not a known target" in p and "did you mean 'cpu'?" in p for p in found)
+    assert any("include[0].model: 'b' is not a known model; known: a" in p for p in found)
+    assert any("include[0].precision: 'fp8' is not a known precision" in p for p in found)
+
+
 def test_conversion_step_must_come_last(tmp_path):
     text = BASE + "strategies:\n  wrong: {steps: [ptq_dynamic, prune]}\n"
     assert any("only the last step may be a post-training" in p for p in problems(tmp_path, text))

@@ -171,7 +171,7 @@ def test_model_without_facts_or_baseline(tmp_path: Path) -> None:
     store.close()
     paths = write_report(path, "md", tmp_path / "md", _console())
     page = paths[1].read_text()
-    assert "Baseline cell pilotnet/pytorch/none/fp32/cpu failed" in page
+    assert "No baseline is recorded for this model" in page  # no facts: nothing is guessed
     assert "Baseline test MSE — vs mean-predictor MSE —." in page
     assert "no environment stored" in page and "(no reason stored)" in page
     write_report(path, "table", tmp_path / "md", _console())

@@ -74,7 +74,7 @@ class Backend(ABC):
     baseline_for: ClassVar[tuple[str, ...]] = ()  # frameworks whose fp32 reference this backend computes
 
     def versions(self) -> dict[str, str]:
-        """Versions of the libraries this backend uses (part of the artifact cache key and of `env`)."""
+        """Versions of the libraries this backend uses (in the artifact cache key and in each record's `env`)."""
         return {}
 
     def probe(self, target: str, precision: str) -> str | None:
@@ -89,6 +89,10 @@ class Backend(ABC):
             frameworks = sorted({f for s in self.supports for f in s.frameworks})
             return f"{self.name} takes {', '.join(frameworks)} models, not {framework}"
         return f"{self.name} does not implement {strategy} at {precision} on {target}"
+
+    def option_reason(self, step: StrategySpec, source_format: str) -> str | None:
+        """Why this backend cannot apply `step` with its options to a source of `source_format`, or None."""
+        return None
 
     @abstractmethod
     def convert(self, request: ConvertRequest) -> dict[str, Any]:

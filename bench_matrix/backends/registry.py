@@ -43,7 +43,10 @@ def load_backend(name: str) -> Backend:
         raise BackendLoadError(f"backend {name!r} ({ep.value}) failed to import: {type(exc).__name__}: {exc}") from exc
     if not (isinstance(cls, type) and issubclass(cls, Backend)):
         raise BackendLoadError(f"backend {name!r} ({ep.value}) is not a bench_matrix Backend subclass")
-    backend = cls()
+    try:
+        backend = cls()
+    except Exception as exc:  # e.g. an abstract method left unimplemented
+        raise BackendLoadError(f"backend {name!r} ({ep.value}) cannot be created: {type(exc).__name__}: {exc}") from exc
     if backend.name != name:
         raise BackendLoadError(f"backend registered as {name!r} calls itself {backend.name!r}")
     return backend

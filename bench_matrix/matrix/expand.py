@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
@@ -10,8 +11,9 @@ from bench_matrix.cell import Cell, PlannedCell
 from bench_matrix.matrix.schema import STRATEGY_KINDS
 from bench_matrix.matrix.spec import Matrix, StrategySpec
 
-# (backend, framework, conversion kind, precision, target): what a backend is asked to judge
-VerdictKey = tuple[str, str, str, str, str]
+# (backend, framework, conversion kind, precision, target, source format, conversion options as JSON):
+# everything a backend needs to judge a combination before any model is loaded
+VerdictKey = tuple[str, str, str, str, str, str, str]
 
 
 @dataclass(frozen=True)
@@ -33,10 +35,15 @@ class Expansion:
         return [p for p in self.cells if p.state == state]
 
 
-def conversion_kind(strategy: StrategySpec) -> str:
-    """The post-training kind a backend performs (the last conversion step, or 'none')."""
-    kinds = [k for k in strategy.kinds() if STRATEGY_KINDS[k]["stage"] == "conversion"]
-    return kinds[-1] if kinds else "none"
+def conversion_step(strategy: StrategySpec) -> StrategySpec:
+    """The post-training step a backend performs, with its options (kind 'none' when there is none)."""
+    leaves = [strategy] if not strategy.steps else [leaf for step in strategy.steps for leaf in _leaves(step)]
+    steps = [s for s in leaves if s.kind and STRATEGY_KINDS[s.kind]["stage"] == "conversion"]
+    return steps[-1] if steps else StrategySpec(name="none", kind="none")
+
+
+def _leaves(strategy: StrategySpec) -> list[StrategySpec]:
+    return [leaf for step in strategy.steps for leaf in _leaves(step)] if strategy.steps else [strategy]
 
 
 def training_kinds(strategy: StrategySpec) -> list[str]:
@@ -44,8 +51,9 @@ def training_kinds(strategy: StrategySpec) -> list[str]:
 
 
 def verdict_key(matrix: Matrix, cell: Cell) -> VerdictKey:
-    kind = conversion_kind(matrix.strategies[cell.strategy])
-    return (cell.backend, cell.framework, kind, cell.precision, cell.target)
+    step = conversion_step(matrix.strategies[cell.strategy])
+    return (cell.backend, cell.framework, step.kind or "none", cell.precision, cell.target,
+            matrix.model(cell.model).source_format, json.dumps(step.options, sort_keys=True))
 
 
 def combinations(matrix: Matrix, installed: Iterable[str]) -> tuple[list[Cell], int]:

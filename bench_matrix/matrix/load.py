@@ -9,8 +9,9 @@ from typing import Any
 import jsonschema
 
 from bench_matrix.errors import MatrixError
-from bench_matrix.matrix.schema import BUILTIN_MODELS, CELL_KEYS, SCHEMA, STRATEGY_KINDS
+from bench_matrix.matrix.schema import BUILTIN_MODELS, CELL_KEYS, FRAMEWORKS, PRECISIONS, SCHEMA, STRATEGY_KINDS, TARGETS
 from bench_matrix.matrix.spec import (
+    MODEL_SUFFIXES,
     DatasetSpec,
     LabelSpec,
     Matrix,
@@ -25,8 +26,6 @@ from bench_matrix.matrix.spec import (
 from bench_matrix.matrix.yamlpos import format_path, load_with_lines
 
 DRIVING_LABELS = LabelSpec(columns=("v", "w"), offset=(6.5, -7.1), scale=(17.5, 14.2))
-MODEL_SUFFIXES = {".pt": ("pytorch", "torchscript"), ".pth": ("pytorch", "torchscript"),
-                  ".pt2": ("pytorch", "torch_export"), ".onnx": ("onnx", "onnx")}
 
 
 def suggest(word: str, allowed: list[str] | tuple[str, ...]) -> str:
@@ -119,7 +118,8 @@ def _build(path: Path, data: dict[str, Any], lines: dict, report: _Located, back
             if name not in backends:
                 report.add(("axes", "backend", i), f"no backend '{name}' is installed; installed: "
                                                    f"{', '.join(backends)}{suggest(name, backends)}")
-    known = {"model": names, "strategy": list(strategies), "backend": backends}
+    known = {"model": names, "strategy": list(strategies), "backend": backends, "framework": list(FRAMEWORKS),
+             "precision": list(PRECISIONS), "target": list(TARGETS)}
     selectors = {}
     for section in ("include", "exclude"):
         selectors[section] = tuple(_selector(section, i, s, known, report) for i, s in enumerate(data.get(section, [])))

@@ -12,8 +12,12 @@ class TrainingSpec:
     """How a built-in reference model is trained on the dataset's training split."""
 
     epochs: int = 8
-    batch_size: int = 64
+    batch_size: int = 16
     lr: float = 1e-3
+
+
+MODEL_SUFFIXES = {".pt": ("pytorch", "torchscript"), ".pth": ("pytorch", "torchscript"),
+                  ".pt2": ("pytorch", "torch_export"), ".onnx": ("onnx", "onnx")}
 
 
 @dataclass(frozen=True)
@@ -31,8 +35,11 @@ class ModelSpec:
     training: TrainingSpec = field(default_factory=TrainingSpec)
 
     @property
-    def source_kind(self) -> str:
-        return "builtin" if self.builtin else "file" if self.file else "factory"
+    def source_format(self) -> str:
+        """The SourceModel format this model arrives in (state_dict for built-in and factory models)."""
+        if self.file is None:
+            return "state_dict"
+        return MODEL_SUFFIXES.get(self.file.suffix.lower(), ("", "unknown"))[1]
 
 
 @dataclass(frozen=True)
@@ -72,7 +79,7 @@ class DatasetSpec:
     kind: str  # builtin | npz | folder
     paths: tuple[Path, ...] = ()
     samples: int = 4000
-    circuits: int = 10
+    circuits: int = 20
     seed: int = 0
     preprocess: Preprocess = field(default_factory=Preprocess)
     labels: LabelSpec = field(default_factory=LabelSpec)

@@ -110,6 +110,9 @@ def baseline_note(model: ModelSummary) -> str | None:
     """Why the comparisons are missing when the baseline cell did not produce a result, else None."""
     if model.baseline is not None and model.baseline.status == "ok":
         return None
+    if not model.baseline_key:
+        return ("No baseline is recorded for this model (its preparation never finished): speed-up, size ratio "
+                "and ΔMSE are not available.")
     state = "is not in the store" if model.baseline is None else model.baseline.status
     return f"Baseline cell {model.baseline_key} {state}: speed-up, size ratio and ΔMSE are not available."
 

@@ -114,7 +114,7 @@ def summarize(records: list[CellRecord], infos: Mapping[str, dict[str, Any]], ru
 
 def _model(name: str, records: list[CellRecord], info: dict[str, Any]) -> ModelSummary:
     framework = info.get("framework") or records[0].cell.framework
-    baseline_key = info.get("baseline_key") or f"{name}/{framework}/none/fp32/cpu"
+    baseline_key = info.get("baseline_key", "")  # written when the model was prepared; absent: no comparison
     baseline = next((r for r in records if r.cell.key == baseline_key), None)
     reference = baseline if baseline is not None and baseline.status == "ok" else None
     ok = [r for r in records if r.status == "ok"]
