@@ -22,7 +22,7 @@ from bench_matrix.matrix.spec import ModelSpec, StrategySpec
 from bench_matrix.measure import env as environment
 from bench_matrix.measure.size import artifact_size
 from bench_matrix.measure.stats import accuracy, latency_summary
-from bench_matrix.measure.timing import LoopSettings, throughput, time_calls
+from bench_matrix.measure.timing import LoopSettings, steady_time_calls, throughput
 from bench_matrix.sources import SourceModel
 from bench_matrix.worker import phase
 from bench_matrix.workspace import Workspace, digest, file_sha256
@@ -133,7 +133,7 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
     loop = LoopSettings(settings.warmup_iterations, settings.warmup_s, settings.min_iterations,
                         settings.min_time_s, settings.max_time_s)
     phase("measure")
-    durations = time_calls(session.execute, singles, loop)
+    durations, stability = steady_time_calls(session.execute, singles, loop)
     rate = throughput(session.execute, batch, settings.batch_size, settings.throughput_time_s)
     peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     phase("evaluate")
@@ -141,7 +141,7 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
     pred = predict_all(session, x, settings.batch_size)
     reference = np.load(job["reference"]) if job.get("reference") else None
     metrics = {**artifact_size(artifact / "model"), "params": manifest["params"],
-               **accuracy(pred, y, reference), "latency_ms": latency_summary(durations), **rate,
+               **accuracy(pred, y, reference), "latency_ms": latency_summary(durations), **stability, **rate,
                "batch_size": settings.batch_size, "peak_rss_mb": round(peak_rss_mb, 1),
                "convert_s": manifest["convert_s"], "load_s": load_s, "threads": settings.threads,
                "artifact_cached": job["cached"], "session": session.info(), "test_samples": int(len(y))}

@@ -10,7 +10,7 @@ import pytest
 
 from bench_matrix.measure.size import artifact_size
 from bench_matrix.measure.stats import accuracy, latency_summary
-from bench_matrix.measure.timing import LoopSettings, throughput, time_calls
+from bench_matrix.measure.timing import LoopSettings, drift, steady_time_calls, throughput, time_calls
 
 
 def test_latency_summary_percentiles_and_units():
@@ -75,3 +75,23 @@ def test_throughput_counts_samples_per_second():
     out = throughput(lambda x: time.sleep(0.01), None, batch_size=8, seconds=0.1)
     assert out["throughput_batches"] >= 3
     assert 8 / 0.02 < out["throughput_sps"] <= 8 / 0.01 * 1.05
+
+
+def test_drift_is_zero_for_steady_and_large_for_a_step():
+    steady = np.full(100, 1_000_000)
+    assert drift(steady) == 0.0
+    step = np.concatenate([np.full(50, 1_000_000), np.full(50, 1_500_000)])  # interference half-way
+    assert drift(step) == pytest.approx(0.5 / 1.25)
+
+
+def test_steady_time_calls_repeats_an_unsteady_measurement_and_keeps_the_steadiest():
+    calls = {"n": 0}
+
+    def call(_):
+        calls["n"] += 1
+        time.sleep(0.004 if 10 <= calls["n"] <= 20 else 0.001)  # interference in the middle of attempt 1
+
+    settings = LoopSettings(0, 0.0, min_iterations=20, min_time_s=0.0, max_time_s=5)
+    durations, info = steady_time_calls(call, [None], settings, tolerance=0.2, attempts=3)
+    assert info["latency_attempts"] == 2 and info["latency_stability"] <= 0.2
+    assert np.median(durations) < 2_500_000  # the kept attempt is the steady, fast one

@@ -209,3 +209,13 @@ def test_not_a_store(tmp_path: Path) -> None:
     path.write_text("not sqlite, just text that is long enough to have a header " * 4)
     with pytest.raises(UserError, match="not a bench-matrix results store"):
         write_report(path, "md", tmp_path, _console())
+
+
+def test_unsteady_latency_is_marked(tmp_path: Path) -> None:
+    path = tmp_path / "r.sqlite"
+    store = ResultStore(path)
+    store.put(_record(PILOT_BASE, metrics={"latency_ms": {"p50": 2.0}, "latency_stability": 0.01}, env={}))
+    store.put(_record(PILOT_ORT, metrics={"latency_ms": {"p50": 1.0}, "latency_stability": 0.3}, env={}))
+    store.close()
+    page = write_report(path, "md", tmp_path / "md", _console())[1].read_text()
+    assert "| 1.00 ~ |" in page and "| 2.00 |" in page

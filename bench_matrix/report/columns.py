@@ -66,6 +66,16 @@ def _latency(stat: str) -> Callable[[Row], str]:
     return lambda row: sig(metric(row.record, "latency_ms", stat), 3)
 
 
+UNSTEADY = 0.05  # chunk medians of the kept timing attempt differ by more than this: see docs/metrics.md
+
+
+def _p50(row: Row) -> str:
+    """The p50, marked "~" when even the steadiest timing attempt drifted (interference on the machine)."""
+    text = sig(metric(row.record, "latency_ms", "p50"), 3)
+    stability = metric(row.record, "latency_stability")
+    return text + " ~" if stability is not None and stability > UNSTEADY else text
+
+
 SIZE, ACCURACY, SPEED = "size", "accuracy", "speed"
 COLUMNS: tuple[Column, ...] = (
     Column("Method", "backend, strategy and precision (and target when not cpu) of the cell.", _method, ""),
@@ -83,8 +93,10 @@ COLUMNS: tuple[Column, ...] = (
            lambda r: sig(metric(r.record, "mae"), 4), ACCURACY),
     Column("max |Δ|\nvs base", "largest absolute difference between the cell's and the baseline's outputs "
            "on the test split.", lambda r: sig(metric(r.record, "max_abs_diff_vs_baseline"), 3), ACCURACY),
-    Column("p50\nms", "median latency of one inference at batch 1, in milliseconds, after warm-up.",
-           _latency("p50"), SPEED),
+    Column("p50\nms", "median latency of one inference at batch 1, in milliseconds, after warm-up; "
+                       "\"~\" marks a cell whose timing drifted by more than 5 % between parts of the run in "
+                       "every attempt (something else used the machine): treat it as approximate.",
+           _p50, SPEED),
     Column("p90\nms", "90th-percentile latency at batch 1, in milliseconds.", _latency("p90"), SPEED),
     Column("p99\nms", "99th-percentile latency at batch 1, in milliseconds.", _latency("p99"), SPEED),
     Column("Throughput\nsamples/s", "samples per second at the batch size given above the table.",
