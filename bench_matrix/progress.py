@@ -66,8 +66,10 @@ def describe(record: CellRecord) -> str:
     name = f"{cell.model} · {cell.label}"
     if record.status == "ok":
         m = record.metrics
+        passes = m.get("latency_passes_p50", [])
+        per_pass = f"  (p50 per pass: {', '.join(f'{p:.3g}' for p in passes)} ms)" if len(passes) > 1 else ""
         return (f"[green]✓[/] {name}  p50 {m['latency_ms']['p50']:.3g} ms  p99 {m['latency_ms']['p99']:.3g} ms  "
-                f"{m['throughput_sps']:.0f} samples/s  MSE {m['mse']:.4g}  {m['size_bytes'] / 2**20:.2f} MiB")
+                f"{m['throughput_sps']:.0f} samples/s  MSE {m['mse']:.4g}  {m['size_bytes'] / 2**20:.2f} MiB{per_pass}")
     lines = (record.reason or "").strip().splitlines()
     mark = "[yellow]–[/] skipped" if record.status == "skipped" else "[red]✗[/] failed"
     return f"{mark} {escape(name)}: {escape(lines[0] if lines else '')}"

@@ -187,3 +187,16 @@ def test_user_errors_exit_2_without_traceback(tiny_project):
 
     missing = cli(tiny_project, "run", "nope.yaml")
     assert missing.returncode == 2 and "nope.yaml: file not found" in missing.stderr
+
+
+def test_passes_measure_each_cell_again_and_keep_the_least_disturbed(tiny_project):
+    (tiny_project / "m.yaml").write_text(matrix_text(["onnxruntime"], ["none"], ["fp32"], ["cpu"]).replace(
+        "timeout_s: 120}", "timeout_s: 120, passes: 3}"))
+    run = cli(tiny_project, "run", "m.yaml")
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "p50 per pass:" in run.stdout
+    m = records(tiny_project)["onnxruntime/none/fp32/cpu"]["metrics"]
+    assert len(m["latency_passes_p50"]) == 3
+    assert m["latency_ms"]["p50"] == min(m["latency_passes_p50"])  # the kept pass is the fastest
+    again = cli(tiny_project, "run", "m.yaml")
+    assert "1 already stored" in again.stdout  # all passes done: nothing to re-measure

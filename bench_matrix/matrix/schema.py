@@ -196,6 +196,8 @@ SCHEMA: dict[str, Any] = {
             "timeout_s": {"type": "number", "exclusiveMinimum": 0},
             "seed": {"type": "integer"},
             "eval_samples": {"type": "integer", "minimum": 1},
+            "passes": {"type": "integer", "minimum": 1,
+                       "description": "measure every cell this many times, round-robin; keep the lowest p50"},
         }},
     },
 }

@@ -121,6 +121,7 @@ class Settings:
     timeout_s: float = 600.0
     seed: int = 0
     eval_samples: int | None = None
+    passes: int = 1  # latency windows per cell, round-robin over the cells; the least disturbed is kept
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
