@@ -8,6 +8,7 @@ from pathlib import Path
 
 from bench_matrix import __version__
 from bench_matrix.errors import MatrixError, UserError
+from bench_matrix.workspace import DEFAULT_ROOT
 
 FILTER_KEYS = ("model", "backend", "strategy", "precision", "target")
 
@@ -40,7 +41,7 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="bench-matrix", description="Measure size, accuracy and speed of every "
                                      "framework x strategy x precision x target combination in a matrix file.")
     parser.add_argument("--version", action="version", version=f"bench-matrix {__version__}")
-    parser.add_argument("--workspace", type=Path, default=Path(".bench-matrix"),
+    parser.add_argument("--workspace", type=Path, default=DEFAULT_ROOT,
                         help="cache, logs and default results live here (default: %(default)s)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
