@@ -1,8 +1,6 @@
-"""What every built-in backend shares: the conversion step of a strategy, calibration batches, versions."""
+"""What the built-in backends share: the ptq_static option check and calibration data in batches."""
 
 from __future__ import annotations
-
-from importlib.metadata import PackageNotFoundError, version
 
 import numpy as np
 
@@ -11,17 +9,6 @@ from bench_matrix.matrix.spec import StrategySpec
 
 CALIBRATION_BATCH = 32
 DEFAULT_CALIBRATION_SAMPLES = 100
-
-
-def installed_versions(*distributions: str) -> dict[str, str]:
-    """Versions of the installed distributions among `distributions`, read without importing them."""
-    found = {}
-    for name in distributions:
-        try:
-            found[name] = version(name)
-        except PackageNotFoundError:
-            continue
-    return found
 
 
 def static_options_reason(step: StrategySpec, runtime: str, methods: tuple[str, ...]) -> str | None:

@@ -11,8 +11,8 @@ import numpy as np
 
 from bench_matrix import hardware
 from bench_matrix.backends.base import Backend, Session
+from bench_matrix.measure.env import installed_versions
 
-from ._common import installed_versions
 
 if TYPE_CHECKING:
     import torch

@@ -12,9 +12,9 @@ from bench_matrix import hardware
 from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
 from bench_matrix.matrix.expand import conversion_step
 from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.measure.env import installed_versions
 
-from ._common import CALIBRATION_BATCH, batches, calibration_data, static_options_reason, \
-    installed_versions
+from ._common import CALIBRATION_BATCH, batches, calibration_data, static_options_reason
 from ._torch import quiet_torch
 
 if TYPE_CHECKING:

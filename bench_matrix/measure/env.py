@@ -33,14 +33,19 @@ def memory_gb() -> float | None:
         return None
 
 
-def library_versions() -> dict[str, str]:
+def installed_versions(*distributions: str) -> dict[str, str]:
+    """Versions of those `distributions` that are installed, read from their metadata (nothing imported)."""
     found = {}
-    for name in LIBRARIES:
+    for name in distributions:
         try:
             found[name] = version(name)
         except PackageNotFoundError:
             continue
     return found
+
+
+def library_versions() -> dict[str, str]:
+    return installed_versions(*LIBRARIES)
 
 
 def capture() -> dict[str, object]:
