@@ -77,6 +77,7 @@ class Runner:
         self.dataset_fingerprint = data.fingerprint(matrix.dataset)
         self.libraries = environment.library_versions()  # an upgraded runtime makes stored results stale
         self._dataset: dict[str, Any] | None = None
+        self._hashes: dict[Path, str] = {}
         self._again: dict[Cell, tuple[CellRecord, dict[str, Any]]] = {}  # ok cells and their measure job
 
     def run(self, planned: Planned, filters: Filters, force: bool) -> dict[str, int]:
@@ -199,13 +200,19 @@ class Runner:
     def fingerprint(self, cell: Cell) -> str:
         """Everything that determines a cell's result; a stored record with another fingerprint is stale."""
         model = self.matrix.model(cell.model)
-        files = [file_sha256(p) for p in (model.file, model.weights) if p is not None]
+        files = [self._file_hash(p) for p in (model.file, model.weights) if p is not None]
         return digest({"cell": cell.key, "model": asdict(model), "files": files, "dataset": self.dataset_fingerprint,
                        "libraries": self.libraries,
                        "strategy": self.matrix.strategies[cell.strategy].to_dict(),
                        "settings": {k: v for k, v in self.matrix.settings.to_dict().items()
                                     if k not in ("timeout_s", "passes")},  # neither changes what is measured
                        "version": __version__})
+
+    def _file_hash(self, path: Path) -> str:
+        """Content hash of a model file, computed once per run (fingerprints are asked for per cell)."""
+        if path not in self._hashes:
+            self._hashes[path] = file_sha256(path)
+        return self._hashes[path]
 
     def _record(self, cell: Cell, status: str, reason: str | None, started: str, metrics: dict | None = None,
                 env: dict | None = None, artifact: str | None = None) -> CellRecord:
