@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -31,20 +32,21 @@ DISTRIBUTIONS = ("onnxruntime", "onnxruntime-gpu", "onnxruntime-directml", "onnx
 # for 128 quantised bins) leaves the KL search one candidate, the full range, so it would calibrate exactly like
 # "minmax" under another name.
 METHODS = {"minmax": "MinMax", "percentile": "Percentile"}
+FRAMEWORKS = ("pytorch", "tensorflow", "onnx")  # PyTorch through torch.onnx, Keras through tf2onnx
 
 
 class OnnxRuntimeBackend(Backend):
-    """Exports PyTorch models to ONNX (or takes ONNX files as given) and runs them with ONNX Runtime."""
+    """Exports PyTorch and Keras models to ONNX (or takes ONNX files as given) and runs them with ONNX Runtime."""
 
     name = "onnxruntime"
     description = "ONNX Runtime: CPU, CUDA and TensorRT providers; fp16 conversion, int8 QDQ quantisation"
-    supports = (Support(("pytorch", "onnx"), ("none",), ("fp32", "fp16"), ("cpu", "cuda", "tensorrt")),
-                Support(("pytorch", "onnx"), ("ptq_dynamic", "ptq_static"), ("int8",), ("cpu",)),
-                Support(("pytorch", "onnx"), ("ptq_static",), ("int8",), ("tensorrt",)))
+    supports = (Support(FRAMEWORKS, ("none",), ("fp32", "fp16"), ("cpu", "cuda", "tensorrt")),
+                Support(FRAMEWORKS, ("ptq_dynamic", "ptq_static"), ("int8",), ("cpu",)),
+                Support(FRAMEWORKS, ("ptq_static",), ("int8",), ("tensorrt",)))
     baseline_for = ("onnx",)
 
     def versions(self) -> dict[str, str]:
-        return installed_versions(*DISTRIBUTIONS, "onnx", "torch")
+        return installed_versions(*DISTRIBUTIONS, "onnx", "torch", "tf2onnx", "tensorflow")
 
     def probe(self, target: str, precision: str) -> str | None:
         if target == "cpu":
@@ -57,6 +59,11 @@ class OnnxRuntimeBackend(Backend):
             reasons.append(f"the installed {_package()} has no {PROVIDERS[target]} (it has "
                            f"{', '.join(available)}); install onnxruntime-gpu in its place")
         return "; ".join(reasons) or None
+
+    def probe_source(self, framework: str, source_format: str) -> str | None:
+        if framework != "tensorflow" or importlib.util.find_spec("tf2onnx") is not None:
+            return None
+        return "converting Keras models to ONNX needs tf2onnx, which is not installed (pip install tf2onnx)"
 
     def option_reason(self, step: StrategySpec, source_format: str) -> str | None:
         return static_options_reason(step, "ONNX Runtime", tuple(METHODS)) if step.kind == "ptq_static" else None
@@ -153,6 +160,8 @@ def _fp32_model(request: ConvertRequest, tmp: Path) -> "onnx.ModelProto":
     source = request.source
     if source.framework == "onnx":
         return onnx.load(str(source.load()))  # external data, if any, is read in too
+    if source.framework == "tensorflow":
+        return _keras_to_onnx(request)
     import torch
 
     path = tmp / "exported.onnx"
@@ -166,6 +175,19 @@ def _fp32_model(request: ConvertRequest, tmp: Path) -> "onnx.ModelProto":
                           input_names=["input"], output_names=["output"],
                           dynamic_axes={"input": {0: "batch"}, "output": {0: "batch"}})
     return onnx.load(str(path))
+
+
+def _keras_to_onnx(request: ConvertRequest) -> "onnx.ModelProto":
+    """A Keras model through tf2onnx, with a dynamic batch axis; the layout (NHWC) stays the model's own."""
+    from bench_matrix.sources.tensorflow import tensorflow
+
+    tf = tensorflow(request.threads)
+    import tf2onnx
+
+    source = request.source
+    signature = (tf.TensorSpec((None, *source.input_shape), tf.float32, name="input"),)
+    model, _ = tf2onnx.convert.from_keras(source.load(), input_signature=signature, opset=OPSET)
+    return model
 
 
 def _single_input(model: "onnx.ModelProto", path: Path) -> tuple[str, int | None]:

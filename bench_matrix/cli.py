@@ -56,6 +56,8 @@ def _parser() -> argparse.ArgumentParser:
     plan.add_argument("matrix", type=Path)
     plan.add_argument("--results", type=Path, help="mark cells already stored in this results file "
                                                    "(default: WORKSPACE/results.sqlite)")
+    plan.add_argument("--all", action="store_true", dest="show_all",
+                      help="list every combination that is not valid, one row each")
     _filters(plan)
     plan.set_defaults(handler=_plan)
 
@@ -124,7 +126,7 @@ def _plan(args: argparse.Namespace, console) -> int:
     from bench_matrix.runner import resolve
 
     matrix, ws = _load(args)
-    show_plan(console, matrix, ws, resolve(matrix, ws), _selected(args), args.results)
+    show_plan(console, matrix, ws, resolve(matrix, ws), _selected(args), args.results, args.show_all)
     return 0
 
 

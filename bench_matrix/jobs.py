@@ -29,6 +29,7 @@ from bench_matrix.workspace import Workspace, digest, file_sha256
 
 NONE = StrategySpec(name="none", kind="none")
 LATENCY_INPUTS = 16
+_DEFAULT_FORMAT = {"pytorch": "state_dict", "tensorflow": "keras"}  # what built-in models arrive as
 
 
 def probe(job: dict[str, Any]) -> dict[str, Any]:
@@ -47,7 +48,7 @@ def probe(job: dict[str, Any]) -> dict[str, Any]:
             backends[name], described[name] = None, {"error": str(exc)}
     keys = job["keys"]
     if keys == "declared":  # every combination the loaded backends declare, for a default source
-        keys = [(n, f, st, p, t, "state_dict" if f == "pytorch" else f, "{}") for n, b in backends.items() if b
+        keys = [(n, f, st, p, t, _DEFAULT_FORMAT.get(f, f), "{}") for n, b in backends.items() if b
                 for s in b.supports for f in s.frameworks for st in s.strategies for p in s.precisions
                 for t in s.targets]
     verdicts = {}
@@ -60,7 +61,8 @@ def probe(job: dict[str, Any]) -> dict[str, Any]:
         invalid = (b.invalid_reason(framework, kind, precision, target)
                    or b.option_reason(StrategySpec(name=kind, kind=kind, options=json.loads(options)), source_format))
         try:
-            skip = None if invalid else b.probe(target, precision)
+            reasons = [] if invalid else [b.probe(target, precision), b.probe_source(framework, source_format)]
+            skip = "; ".join(r for r in reasons if r) or None
         except Exception as exc:  # a probe that crashes is a reason, not a crash of the run
             skip = f"probing {name} for {target}/{precision} failed: {type(exc).__name__}: {exc}"
         verdicts[json.dumps(key)] = {"invalid": invalid, "skip": skip}
@@ -198,6 +200,10 @@ def _params(source: SourceModel) -> int:
         import onnx
 
         return int(sum(np.prod(t.dims) for t in onnx.load(str(source.path)).graph.initializer))
+    if source.framework == "tensorflow":
+        from bench_matrix.sources.tensorflow import count_params as count_keras_params
+
+        return count_keras_params(source.load())
     from bench_matrix.sources.pytorch import count_params
 
     return count_params(source.load())
@@ -206,26 +212,38 @@ def _params(source: SourceModel) -> int:
 def _source(spec: ModelSpec, ws: Workspace, ddir: Path, dinfo: dict, preprocess: Any, settings: Any,
             shape: tuple[int, ...]) -> tuple[SourceModel, dict[str, Any] | None]:
     if spec.builtin:
-        from bench_matrix.workload.pilotnet_torch import FACTORIES
-        from bench_matrix.workload.train import train_torch
-
-        key = digest({"builtin": spec.builtin, "training": spec.training, "dataset": dinfo["fingerprint"],
-                      "seed": settings.seed, "layout": spec.layout})
-        weights = ws.models(key) / "model.pt"
-        facts_file = weights.with_name("training.json")
-        if not facts_file.is_file():
-            phase("train")
-            x, y = data.load_split(ddir, "train", preprocess, spec.layout)
-            facts = train_torch(FACTORIES[spec.builtin], x, y, spec.training, settings.seed, weights,
-                                threads=len(os.sched_getaffinity(0)))
-            facts_file.write_text(json.dumps(facts))
-        return (SourceModel(spec.name, "pytorch", "state_dict", weights, file_sha256(weights), shape,
-                            factory=FACTORIES[spec.builtin]), json.loads(facts_file.read_text()))
+        return _trained_builtin(spec, ws, ddir, dinfo, preprocess, settings, shape)
     if spec.file:
         return SourceModel(spec.name, spec.framework, spec.source_format, spec.file, file_sha256(spec.file), shape), None
     assert spec.weights is not None and spec.factory is not None
     return (SourceModel(spec.name, "pytorch", "state_dict", spec.weights, file_sha256(spec.weights), shape,
                         factory=spec.factory, python_path=tuple(str(p) for p in spec.python_path)), None)
+
+
+def _trained_builtin(spec: ModelSpec, ws: Workspace, ddir: Path, dinfo: dict, preprocess: Any, settings: Any,
+                     shape: tuple[int, ...]) -> tuple[SourceModel, dict[str, Any]]:
+    """The built-in model of spec.framework, trained on the training split once and cached by content."""
+    from bench_matrix.workload.pilotnet_torch import FACTORIES
+
+    key = digest({"builtin": spec.builtin, "framework": spec.framework, "training": spec.training,
+                  "dataset": dinfo["fingerprint"], "seed": settings.seed, "layout": spec.layout})
+    keras = spec.framework == "tensorflow"
+    model_file = ws.models(key) / ("model.keras" if keras else "model.pt")
+    facts_file = model_file.with_name("training.json")
+    if not facts_file.is_file():
+        phase("train")
+        from bench_matrix.workload.train import train_keras, train_torch
+
+        x, y = data.load_split(ddir, "train", preprocess, spec.layout)
+        threads = len(os.sched_getaffinity(0))
+        facts = (train_keras(spec.builtin, x, y, spec.training, settings.seed, model_file, threads) if keras else
+                 train_torch(FACTORIES[spec.builtin], x, y, spec.training, settings.seed, model_file, threads))
+        facts_file.write_text(json.dumps(facts))
+    facts = json.loads(facts_file.read_text())
+    if keras:
+        return SourceModel(spec.name, "tensorflow", "keras", model_file, file_sha256(model_file), shape), facts
+    return (SourceModel(spec.name, "pytorch", "state_dict", model_file, file_sha256(model_file), shape,
+                        factory=FACTORIES[spec.builtin]), facts)
 
 
 def _spec_files_sha(spec: ModelSpec) -> list[str]:

@@ -11,6 +11,7 @@ from rich.padding import Padding
 from rich.table import Table
 
 from bench_matrix.backends.registry import available
+from bench_matrix.cell import PlannedCell
 from bench_matrix.launcher import run_job
 from bench_matrix.matrix.schema import TARGETS
 from bench_matrix.matrix.spec import Matrix
@@ -23,7 +24,7 @@ STATE_STYLE = {"run": "[green]will run[/]", "stored": "[cyan]stored[/]", "skip":
 
 
 def show_plan(console: Console, matrix: Matrix, ws: Workspace, planned: Planned, filters: Filters,
-              results: Path | None) -> None:
+              results: Path | None, show_all: bool = False) -> None:
     """Cells that will run, are stored, or are skipped (why); then the combinations that are not valid (why)."""
     filters.check([p.cell for p in planned.expansion.cells])
     results = results or ws.results
@@ -40,23 +41,37 @@ def show_plan(console: Console, matrix: Matrix, ws: Workspace, planned: Planned,
         c = p.cell
         table.add_row(c.model, c.backend, c.strategy, c.precision, c.target, STATE_STYLE[state], escape(p.reason or ""))
     console.print(table)
-    invalid: dict[tuple[str, ...], list[str]] = {}
-    for p in cells:
-        if p.state == "invalid":
-            counts["invalid"] += 1
-            c = p.cell
-            invalid.setdefault((c.backend, c.strategy, c.precision, c.target, p.reason or ""), []).append(c.model)
+    invalid = [p for p in cells if p.state == "invalid"]
+    counts["invalid"] = len(invalid)
     if invalid:
-        rejected = Table(title="combinations that are not valid (not run, not stored)")
-        for column in ("backend", "strategy", "precision", "target", "why", "models"):
-            rejected.add_column(column, overflow="fold")
-        for (backend, strategy, precision, target, why), models in sorted(invalid.items()):
-            rejected.add_row(backend, strategy, precision, target, escape(why), str(len(models)))
-        console.print(rejected)
+        console.print(_invalid_table(invalid, show_all))
     console.print(f"{counts['run']} will run, {counts['stored']} already stored, {counts['skip']} will be skipped, "
                   f"{counts['invalid']} not valid, {planned.expansion.excluded} removed by exclude")
     if store:
         store.close()
+
+
+def _invalid_table(invalid: list[PlannedCell], show_all: bool) -> Table:
+    """Not-valid combinations grouped by backend and reason; unless `show_all`, a backend's unimplemented
+    strategy/precision/target combinations are one row (`bench-matrix backends` lists what each supports)."""
+    groups: dict[tuple[str, ...], list[PlannedCell]] = {}
+    for p in invalid:
+        c, why = p.cell, p.reason or ""
+        if show_all:
+            key = (c.backend, c.strategy, c.precision, c.target, why)
+        elif why.startswith(f"{c.backend} does not implement "):
+            key = (c.backend, "", "", "", "combinations it does not implement (plan --all lists them)")
+        else:
+            key = (c.backend, "", "", "", why)
+        groups.setdefault(key, []).append(p)
+    table = Table(title="combinations that are not valid (not run, not stored)")
+    columns = ("backend", "strategy", "precision", "target", "why", "cells") if show_all else ("backend", "why", "cells")
+    for column in columns:
+        table.add_column(column, overflow="fold")
+    for key, members in sorted(groups.items()):
+        shown = key if show_all else (key[0], key[4])
+        table.add_row(*shown[:-1], escape(shown[-1]), str(len(members)))
+    return table
 
 
 def show_backends(console: Console, ws: Workspace) -> None:

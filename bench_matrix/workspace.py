@@ -42,7 +42,9 @@ def digest(obj: Any) -> str:
 
 
 def file_sha256(path: Path) -> str:
-    """SHA-256 of a file's content."""
+    """SHA-256 of a file's content (of a directory, such as a SavedModel: of every file below it)."""
+    if path.is_dir():
+        return tree_sha256([path])
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):

@@ -17,13 +17,13 @@ TESTS = Path(__file__).resolve().parent
 sys.path.insert(0, str(TESTS))
 
 import tiny_models  # noqa: E402
+from convert_helper import convert_with  # noqa: E402
 
 
 import torch  # noqa: E402
 
 from bench_matrix import hardware  # noqa: E402
-from bench_matrix.backends.base import Backend, ConvertRequest, Session  # noqa: E402
-from bench_matrix.matrix.spec import StrategySpec  # noqa: E402
+from bench_matrix.backends.base import Backend, Session  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
 from bench_matrix_backends.onnxruntime import OnnxRuntimeBackend  # noqa: E402
 from bench_matrix_backends.pytorch import PyTorchBackend  # noqa: E402
@@ -85,12 +85,7 @@ def reference(source: SourceModel) -> np.ndarray:
 
 def _convert(backend: Backend, source: SourceModel, out: Path, kind: str = "none", precision: str = "fp32",
              target: str = "cpu", **options: Any) -> dict[str, Any]:
-    out.mkdir(parents=True, exist_ok=True)
-    request = ConvertRequest(source=source, strategy=StrategySpec(kind, kind, options), precision=precision,
-                             target=target, out_dir=out, calibration=lambda n: CALIBRATION[:n], threads=1, seed=0)
-    meta = backend.convert(request)
-    json.dumps(meta)  # the runner stores it as JSON
-    return meta
+    return convert_with(CALIBRATION, backend, source, out, kind, precision, target, **options)
 
 
 def _build(backend: Backend, source: SourceModel, out: Path, kind: str = "none", precision: str = "fp32",

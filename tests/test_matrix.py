@@ -84,10 +84,11 @@ def test_model_needs_exactly_one_source(tmp_path):
 
 
 def test_missing_model_file_and_wrong_suffix(tmp_path):
-    text = BASE.replace("    builtin: pilotnet\n", "    file: model.h5\n")
+    text = BASE.replace("    builtin: pilotnet\n", "    file: model.tflite\n")
     found = problems(tmp_path, text)
-    assert any("model file not found" in p and "model.h5" in p for p in found)
-    assert any("unsupported model file 'model.h5'; allowed endings: .pt, .pth, .pt2, .onnx" in p for p in found)
+    assert any("model file not found" in p and "model.tflite" in p for p in found)
+    assert any("unsupported model file 'model.tflite'; allowed: files ending .pt, .pth, .pt2, .onnx, .keras, .h5"
+               in p for p in found)
 
 
 def test_split_fractions_must_sum_to_one(tmp_path):

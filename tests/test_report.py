@@ -91,6 +91,9 @@ def test_speedup_size_ratio_and_mse_delta(store_path: Path) -> None:
     assert rows[PILOT_ORT.key].size_ratio == pytest.approx(2.0)
     assert rows[PILOT_ORT.key].mse_delta == pytest.approx(0.0001)
     assert rows[PILOT_PTQ.key].speedup == pytest.approx(4.0) and rows[PILOT_PTQ.key].size_ratio is None
+    # within one runtime: ORT dynamic int8 (0.5 ms) against ORT fp32 (1.0 ms)
+    assert rows[PILOT_PTQ.key].speedup_own_fp32 == pytest.approx(2.0)
+    assert rows[PILOT_ORT.key].speedup_own_fp32 == pytest.approx(1.0)
     assert pilot.best is not None and pilot.best.record.cell == PILOT_PTQ
     assert [r.cell for r in pilot.skipped] == [PILOT_CUDA] and [r.cell for r in pilot.failed] == [PILOT_TS]
     assert report.counts == {"ok": 4, "skipped": 1, "failed": 2}

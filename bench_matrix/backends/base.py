@@ -81,6 +81,10 @@ class Backend(ABC):
         """Why this machine cannot run `target`/`precision`, or None when it can."""
         return None
 
+    def probe_source(self, framework: str, source_format: str) -> str | None:
+        """Why this machine cannot read `framework` models in `source_format` (a converter missing), or None."""
+        return None
+
     def invalid_reason(self, framework: str, strategy: str, precision: str, target: str) -> str | None:
         """Why the combination is not one this backend implements, or None."""
         if any(s.covers(framework, strategy, precision, target) for s in self.supports):

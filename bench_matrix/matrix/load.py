@@ -9,8 +9,9 @@ from typing import Any
 import jsonschema
 
 from bench_matrix.errors import MatrixError
-from bench_matrix.matrix.schema import BUILTIN_MODELS, CELL_KEYS, FRAMEWORKS, PRECISIONS, SCHEMA, STRATEGY_KINDS, TARGETS
+from bench_matrix.matrix.schema import BUILTIN_FRAMEWORKS, BUILTIN_MODELS, CELL_KEYS, FRAMEWORKS, PRECISIONS, SCHEMA, STRATEGY_KINDS, TARGETS
 from bench_matrix.matrix.spec import (
+    DEFAULT_LAYOUT,
     MODEL_SUFFIXES,
     DatasetSpec,
     LabelSpec,
@@ -22,6 +23,7 @@ from bench_matrix.matrix.spec import (
     SplitSpec,
     StrategySpec,
     TrainingSpec,
+    file_kind,
 )
 from bench_matrix.matrix.yamlpos import format_path, load_with_lines
 
@@ -134,15 +136,20 @@ def _model(base: Path, i: int, m: dict[str, Any], report: _Located) -> ModelSpec
     file = _resolve(base, m["file"]) if "file" in m else None
     weights = _resolve(base, m["weights"]) if "weights" in m else None
     framework = m["framework"]
-    if "builtin" in m and framework != "pytorch":
-        report.add(at + ("framework",), f"built-in models {', '.join(BUILTIN_MODELS)} are pytorch models here")
+    if "builtin" in m and framework not in BUILTIN_FRAMEWORKS:
+        report.add(at + ("framework",), f"built-in models {', '.join(BUILTIN_MODELS)} exist for "
+                                        f"{' and '.join(BUILTIN_FRAMEWORKS)}, not {framework}")
     if file is not None:
-        if not file.is_file():
+        expected = file_kind(file)
+        if not file.exists():
             report.add(at + ("file",), f"model file not found: {file}")
-        expected = MODEL_SUFFIXES.get(file.suffix.lower())
-        if expected is None:
-            report.add(at + ("file",), f"unsupported model file '{file.name}'; allowed endings: "
-                                       f"{', '.join(MODEL_SUFFIXES)} (TorchScript, torch.export, ONNX)")
+        if expected is None and file.is_dir():
+            report.add(at + ("file",), f"'{file}' is a directory without saved_model.pb: a model directory "
+                                       f"must be a TensorFlow SavedModel")
+        elif expected is None:
+            report.add(at + ("file",), f"unsupported model file '{file.name}'; allowed: files ending "
+                                       f"{', '.join(MODEL_SUFFIXES)} (TorchScript, torch.export, ONNX, Keras) "
+                                       f"or a SavedModel directory")
         elif expected[0] != framework:
             report.add(at + ("framework",), f"'{file.name}' is a {expected[0]} model file, but framework "
                                             f"is '{framework}'")
@@ -155,7 +162,7 @@ def _model(base: Path, i: int, m: dict[str, Any], report: _Located) -> ModelSpec
             report.add(at + ("framework",), "'factory' builds a pytorch module; set framework: pytorch")
     elif weights is not None:
         report.add(at + ("weights",), "'weights' only goes with 'factory'")
-    layout = m.get("layout", "nchw")
+    layout = m.get("layout", DEFAULT_LAYOUT.get(framework, "nchw"))
     return ModelSpec(name=m["name"], framework=framework, builtin=m.get("builtin"), file=file,
                      factory=m.get("factory"), weights=weights,
                      python_path=tuple(_resolve(base, p) for p in m.get("python_path", [])), layout=layout,

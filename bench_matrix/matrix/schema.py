@@ -5,10 +5,11 @@ from __future__ import annotations
 import json
 from typing import Any
 
-FRAMEWORKS = ("pytorch", "onnx")
+FRAMEWORKS = ("pytorch", "tensorflow", "onnx")
 PRECISIONS = ("fp32", "fp16", "int8")
 TARGETS = ("cpu", "cuda", "tensorrt")
 BUILTIN_MODELS = ("pilotnet", "pilotnet_jderobot")
+BUILTIN_FRAMEWORKS = ("pytorch", "tensorflow")  # each built-in model exists in both
 CELL_KEYS = ("model", "framework", "backend", "strategy", "precision", "target")
 
 _TRAINING = {
@@ -119,8 +120,11 @@ SCHEMA: dict[str, Any] = {
             "properties": {
                 "name": NAME,
                 "framework": {"enum": list(FRAMEWORKS)},
-                "builtin": {"enum": list(BUILTIN_MODELS)},
-                "file": {"type": "string", "description": "TorchScript .pt/.pth, torch.export .pt2, or .onnx"},
+                "builtin": {"enum": list(BUILTIN_MODELS), "description":
+                            "trained on the dataset: pilotnet (NVIDIA's, ~250 k parameters) or pilotnet_jderobot "
+                            "(JdeRobot's variant of the framework: PyTorch 1.6 M parameters, TensorFlow 17 M)"},
+                "file": {"type": "string", "description": "TorchScript .pt/.pth, torch.export .pt2, Keras .keras/.h5, "
+                                                         "a Keras SavedModel directory, or .onnx"},
                 "factory": {"type": "string", "pattern": r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$",
                             "x-message": "write it as 'package.module:function'"},
                 "weights": {"type": "string", "description": "state_dict file for 'factory'"},

@@ -17,7 +17,17 @@ class TrainingSpec:
 
 
 MODEL_SUFFIXES = {".pt": ("pytorch", "torchscript"), ".pth": ("pytorch", "torchscript"),
-                  ".pt2": ("pytorch", "torch_export"), ".onnx": ("onnx", "onnx")}
+                  ".pt2": ("pytorch", "torch_export"), ".onnx": ("onnx", "onnx"),
+                  ".keras": ("tensorflow", "keras"), ".h5": ("tensorflow", "h5")}
+SAVED_MODEL = ("tensorflow", "saved_model")  # a directory holding saved_model.pb
+DEFAULT_LAYOUT = {"tensorflow": "nhwc"}  # every other framework: nchw
+
+
+def file_kind(path: Path) -> tuple[str, str] | None:
+    """(framework, format) of a model file or SavedModel directory, or None when it is not one we read."""
+    if path.is_dir():
+        return SAVED_MODEL if (path / "saved_model.pb").is_file() else None
+    return MODEL_SUFFIXES.get(path.suffix.lower())
 
 
 @dataclass(frozen=True)
@@ -36,10 +46,10 @@ class ModelSpec:
 
     @property
     def source_format(self) -> str:
-        """The SourceModel format this model arrives in (state_dict for built-in and factory models)."""
+        """The SourceModel format this model arrives in (built-in: state_dict or keras; factory: state_dict)."""
         if self.file is None:
-            return "state_dict"
-        return MODEL_SUFFIXES.get(self.file.suffix.lower(), ("", "unknown"))[1]
+            return "keras" if self.framework == "tensorflow" else "state_dict"
+        return (file_kind(self.file) or ("", "unknown"))[1]
 
 
 @dataclass(frozen=True)

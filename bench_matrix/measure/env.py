@@ -11,7 +11,7 @@ from bench_matrix import __version__
 from bench_matrix.hardware import nvidia_gpus
 
 LIBRARIES = ("numpy", "torch", "onnx", "onnxruntime", "onnxruntime-gpu", "tensorflow", "tensorflow-cpu",
-             "tf-keras", "tensorflow-model-optimization", "ai-edge-litert", "tensorrt", "torch-tensorrt")
+             "tf-keras", "tensorflow-model-optimization", "ai-edge-litert", "tf2onnx", "tensorrt", "torch-tensorrt")
 
 
 def cpu_model() -> str:

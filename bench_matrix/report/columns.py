@@ -76,7 +76,7 @@ def _p50(row: Row) -> str:
     return text + " ~" if stability is not None and stability > UNSTEADY else text
 
 
-SIZE, ACCURACY, SPEED = "size", "accuracy", "speed"
+SIZE, ACCURACY, SPEED, THROUGHPUT = "size", "accuracy", "speed", "throughput"
 COLUMNS: tuple[Column, ...] = (
     Column("Method", "backend, strategy and precision (and target when not cpu) of the cell.", _method, ""),
     Column("Size\nMiB", "size of the converted model artifact on disk, in MiB (2^20 bytes).",
@@ -100,11 +100,13 @@ COLUMNS: tuple[Column, ...] = (
     Column("p90\nms", "90th-percentile latency at batch 1, in milliseconds.", _latency("p90"), SPEED),
     Column("p99\nms", "99th-percentile latency at batch 1, in milliseconds.", _latency("p99"), SPEED),
     Column("Throughput\nsamples/s", "samples per second at the batch size given above the table.",
-           lambda r: sig(metric(r.record, "throughput_sps"), 3), SPEED),
+           lambda r: sig(metric(r.record, "throughput_sps"), 3), THROUGHPUT),
     Column("Peak RSS\nMiB", "peak resident memory of the process that measured the cell, in MiB.",
-           lambda r: fixed(metric(r.record, "peak_rss_mb"), 1), SPEED),
+           lambda r: fixed(metric(r.record, "peak_rss_mb"), 1), THROUGHPUT),
     Column("Speed-up", "baseline p50 ÷ cell p50: above 1× the cell is faster than the baseline.",
            lambda r: times(r.speedup), SPEED),
+    Column("vs own\nfp32", "the same backend's fp32 cell (strategy none, same target) p50 ÷ cell p50: what the "
+           "optimisation gains within one runtime.", lambda r: times(r.speedup_own_fp32), SPEED),
 )
 
 

@@ -24,6 +24,7 @@ class Row:
     speedup: float | None
     size_ratio: float | None
     mse_delta: float | None
+    speedup_own_fp32: float | None = None  # vs the same backend's fp32 cell (strategy none, same target)
 
 
 @dataclass(frozen=True)
@@ -119,21 +120,24 @@ def _model(name: str, records: list[CellRecord], info: dict[str, Any]) -> ModelS
     reference = baseline if baseline is not None and baseline.status == "ok" else None
     ok = [r for r in records if r.status == "ok"]
     ok.sort(key=lambda r: (r is not reference, p50(r) is None, p50(r) or 0.0, r.cell.key))
-    rows = tuple(_row(r, reference) for r in ok)
+    own_fp32 = {(r.cell.backend, r.cell.target): r for r in ok
+                if r.cell.strategy == "none" and r.cell.precision == "fp32"}
+    rows = tuple(_row(r, reference, own_fp32.get((r.cell.backend, r.cell.target))) for r in ok)
     by_key = sorted(records, key=lambda r: r.cell.key)
     return ModelSummary(name=name, framework=framework, info=info, baseline_key=baseline_key, baseline=baseline,
                         rows=rows, skipped=tuple(r for r in by_key if r.status == "skipped"),
                         failed=tuple(r for r in by_key if r.status == "failed"), environment=environment(records))
 
 
-def _row(record: CellRecord, reference: CellRecord | None) -> Row:
+def _row(record: CellRecord, reference: CellRecord | None, own_fp32: CellRecord | None) -> Row:
+    own = _ratio(p50(own_fp32), p50(record)) if own_fp32 is not None else None
     if reference is None:
-        return Row(record, False, None, None, None)
+        return Row(record, False, None, None, None, own)
     mse, base_mse = metric(record, "mse"), metric(reference, "mse")
     return Row(record=record, is_baseline=record is reference,
                speedup=_ratio(p50(reference), p50(record)),
                size_ratio=_ratio(metric(reference, "size_bytes"), metric(record, "size_bytes")),
-               mse_delta=None if mse is None or base_mse is None else mse - base_mse)
+               mse_delta=None if mse is None or base_mse is None else mse - base_mse, speedup_own_fp32=own)
 
 
 def _ratio(numerator: float | None, denominator: float | None) -> float | None:

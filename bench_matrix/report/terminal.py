@@ -14,6 +14,7 @@ from bench_matrix.report.columns import (
     DIFFERENT_ENVIRONMENTS,
     SIZE,
     SPEED,
+    THROUGHPUT,
     Column,
     baseline_note,
     best_text,
@@ -26,7 +27,8 @@ from bench_matrix.report.summary import Environment, ModelSummary, Report, headl
 from bench_matrix.store import CellRecord
 
 # Ways to lay out the results columns, tried in order until every table fits the console.
-_LAYOUTS = (((SIZE, ACCURACY, SPEED),), ((SIZE, ACCURACY), (SPEED,)), ((SIZE,), (ACCURACY,), (SPEED,)))
+_LAYOUTS = (((SIZE, ACCURACY, SPEED, THROUGHPUT),), ((SIZE, ACCURACY), (SPEED, THROUGHPUT)),
+            ((SIZE, ACCURACY), (SPEED,), (THROUGHPUT,)), ((SIZE,), (ACCURACY,), (SPEED,), (THROUGHPUT,)))
 
 
 def print_report(report: Report, console: Console) -> None:

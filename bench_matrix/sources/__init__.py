@@ -6,7 +6,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-FORMATS = ("torchscript", "torch_export", "state_dict", "onnx")
+FORMATS = ("torchscript", "torch_export", "state_dict", "onnx", "keras", "h5", "saved_model")
 
 
 @dataclass(frozen=True)
@@ -23,11 +23,16 @@ class SourceModel:
     python_path: tuple[str, ...] = ()
 
     def load(self) -> Any:
-        """A fresh framework object (never shared between strategies): nn.Module, ScriptModule, or ONNX path."""
+        """A fresh framework object (never shared between strategies): nn.Module, ScriptModule, Keras model,
+        or ONNX path."""
         if self.framework == "pytorch":
             from bench_matrix.sources.pytorch import load_module
 
             return load_module(self)
+        if self.framework == "tensorflow":
+            from bench_matrix.sources.tensorflow import load_keras
+
+            return load_keras(self)
         if self.framework == "onnx":
             return self.path
         raise ValueError(f"no loader for framework {self.framework!r}")

@@ -45,3 +45,28 @@ def train_torch(factory: str, x: np.ndarray, y: np.ndarray, spec: TrainingSpec, 
     tmp.replace(out)
     return {"epochs": spec.epochs, "batch_size": spec.batch_size, "lr": spec.lr, "train_s": round(train_s, 2),
             "final_train_loss": losses[-1], "train_samples": int(len(x)), "threads": threads}
+
+
+def train_keras(builtin: str, x: np.ndarray, y: np.ndarray, spec: TrainingSpec, seed: int, out: Path,
+                threads: int) -> dict[str, float]:
+    """The Keras twin of train_torch (Adam, cosine-decayed learning rate, MSE); saves a .keras file."""
+    from bench_matrix.sources.tensorflow import keras, tensorflow
+    from bench_matrix.workload.pilotnet_keras import BUILDERS
+
+    tf = tensorflow(threads)
+    k = keras()
+    k.utils.set_random_seed(seed)
+    tf.config.experimental.enable_op_determinism()
+    model = BUILDERS[builtin]()
+    steps = spec.epochs * -(-len(x) // spec.batch_size)
+    model.compile(optimizer=k.optimizers.Adam(k.optimizers.schedules.CosineDecay(spec.lr, steps)), loss="mse")
+    begin = time.perf_counter()
+    history = model.fit(x, y, batch_size=spec.batch_size, epochs=spec.epochs, shuffle=True, verbose=0)
+    train_s = time.perf_counter() - begin
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f"tmp-{out.name}")  # Keras picks the format from the file ending
+    model.save(tmp)
+    tmp.replace(out)
+    return {"epochs": spec.epochs, "batch_size": spec.batch_size, "lr": spec.lr, "train_s": round(train_s, 2),
+            "final_train_loss": float(history.history["loss"][-1]), "train_samples": int(len(x)),
+            "threads": threads}

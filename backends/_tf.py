@@ -1,0 +1,43 @@
+"""What the TensorFlow-side backends share: library versions and the GPU probe of the TensorFlow build."""
+
+from __future__ import annotations
+
+from bench_matrix import hardware
+from bench_matrix.measure.env import installed_versions
+
+# Every distribution that installs the `tensorflow` module; those installed are reported.
+DISTRIBUTIONS = ("tensorflow", "tensorflow-cpu", "tensorflow-gpu", "tf-keras")
+
+
+def tf_versions(*extra: str) -> dict[str, str]:
+    return installed_versions(*DISTRIBUTIONS, *extra)
+
+
+def probe_tensorflow_gpu() -> str | None:
+    """Why TensorFlow cannot run on an NVIDIA GPU here (every missing piece), or None."""
+    reasons = [reason] if (reason := hardware.no_gpu_reason()) else []
+    from bench_matrix.sources.tensorflow import tensorflow
+
+    tf = tensorflow()
+    if not tf.test.is_built_with_cuda():
+        reasons.append(f"this TensorFlow {tf.__version__} is a CPU-only build (tf.test.is_built_with_cuda() is "
+                       f"False); install a CUDA build, e.g. tensorflow[and-cuda] on Linux")
+    elif not reasons and not tf.config.list_physical_devices("GPU"):
+        build = tf.sysconfig.get_build_info()
+        reasons.append(f"TensorFlow {tf.__version__} (built for CUDA {build.get('cuda_version')}, cuDNN "
+                       f"{build.get('cudnn_version')}) sees no GPU: tf.config.list_physical_devices('GPU') is "
+                       f"empty (driver too old, or CUDA libraries missing?)")
+    return "; ".join(reasons) or None
+
+
+def probe_tftrt() -> str | None:
+    """Why TF-TRT cannot run here: no GPU, no CUDA build, or a TensorFlow that is not a TensorRT build."""
+    reasons = [reason] if (reason := probe_tensorflow_gpu()) else []
+    from bench_matrix.sources.tensorflow import tensorflow
+
+    tf = tensorflow()
+    if not tf.sysconfig.get_build_info().get("is_tensorrt_build", False):
+        reasons.append(f"TensorFlow {tf.__version__} is not a TensorRT build "
+                       f"(tf.sysconfig.get_build_info()['is_tensorrt_build'] is False): pip wheels never are; "
+                       f"NVIDIA's TensorFlow containers (nvcr.io/nvidia/tensorflow) are")
+    return "; ".join(reasons) or None
