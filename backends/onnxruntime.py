@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import os
 import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -154,16 +155,30 @@ def _providers(target: str, precision: str) -> list[Any]:
 
 
 def _fp32_model(request: ConvertRequest, tmp: Path) -> "onnx.ModelProto":
-    """The fp32 ONNX model: a PyTorch source exported with a dynamic batch axis, or the ONNX source as is."""
+    """The fp32 ONNX model: the ONNX source as is, or a PyTorch or Keras source exported with a dynamic batch
+    axis (once per source: the export is kept in request.shared_dir for the other modes)."""
     import onnx
 
     source = request.source
     if source.framework == "onnx":
         return onnx.load(str(source.load()))  # external data, if any, is read in too
-    if source.framework == "tensorflow":
-        return _keras_to_onnx(request)
+    kept = request.shared_dir / "fp32.onnx" if request.shared_dir else None
+    if kept and kept.is_file():
+        return onnx.load(str(kept))
+    model = _keras_to_onnx(request) if source.framework == "tensorflow" else _torch_to_onnx(request, tmp)
+    if kept:
+        partial = kept.with_name(f"fp32.onnx.tmp{os.getpid()}")
+        onnx.save(model, str(partial))
+        partial.replace(kept)
+    return model
+
+
+def _torch_to_onnx(request: ConvertRequest, tmp: Path) -> "onnx.ModelProto":
+    """A PyTorch source through the TorchScript-based exporter, with a dynamic batch axis."""
+    import onnx
     import torch
 
+    source = request.source
     path = tmp / "exported.onnx"
     generator = torch.Generator().manual_seed(request.seed)
     example = torch.rand((2, *source.input_shape), generator=generator)

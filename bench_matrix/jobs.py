@@ -173,9 +173,12 @@ def ensure_artifact(ws: Workspace, backend: Backend, source: SourceModel, strate
     def calibration(n: int) -> np.ndarray:
         return data.load_split(ddir, "calibration", preprocess, layout, n)[0]
 
+    shared = ws.intermediates(backend.name, digest({"source": source.sha256, "versions": backend.versions(),
+                                                    "seed": settings.seed}))
+    shared.mkdir(parents=True, exist_ok=True)
     request = ConvertRequest(source=source, strategy=strategy, precision=precision, target=target,
                              out_dir=tmp / "model", calibration=calibration, threads=settings.threads,
-                             seed=settings.seed)
+                             seed=settings.seed, shared_dir=shared)
     begin = time.perf_counter()
     try:
         meta = backend.convert(request)
@@ -183,7 +186,7 @@ def ensure_artifact(ws: Workspace, backend: Backend, source: SourceModel, strate
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     convert_s = time.perf_counter() - begin
-    manifest = {"meta": meta, "convert_s": convert_s, "params": _params(source),
+    manifest = {"meta": meta, "convert_s": convert_s, "params": _params(ws, source),
                 "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                 "versions": backend.versions(), "source_sha256": source.sha256, "strategy": strategy.to_dict(),
                 "precision": precision, "target": target}
@@ -195,7 +198,18 @@ def ensure_artifact(ws: Workspace, backend: Backend, source: SourceModel, strate
     return final, json.loads((final / "manifest.json").read_text()), False
 
 
-def _params(source: SourceModel) -> int:
+def _params(ws: Workspace, source: SourceModel) -> int:
+    """The source's parameter count, counted once per content hash (counting loads the model)."""
+    kept = ws.root / "cache" / "params" / f"{source.sha256}.json"
+    if kept.is_file():
+        return int(json.loads(kept.read_text()))
+    params = _count_params(source)
+    kept.parent.mkdir(parents=True, exist_ok=True)
+    kept.write_text(json.dumps(params))
+    return params
+
+
+def _count_params(source: SourceModel) -> int:
     if source.framework == "onnx":
         import onnx
 

@@ -30,6 +30,9 @@ class Workspace:
     def artifact(self, backend: str, fingerprint: str) -> Path:
         return self.root / "cache" / "artifacts" / backend / fingerprint
 
+    def intermediates(self, backend: str, fingerprint: str) -> Path:
+        return self.root / "cache" / "intermediates" / backend / fingerprint
+
     @property
     def logs(self) -> Path:
         return self.root / "logs"

@@ -84,8 +84,8 @@ def reference(source: SourceModel) -> np.ndarray:
 
 
 def _convert(backend: Backend, source: SourceModel, out: Path, kind: str = "none", precision: str = "fp32",
-             target: str = "cpu", **options: Any) -> dict[str, Any]:
-    return convert_with(CALIBRATION, backend, source, out, kind, precision, target, **options)
+             target: str = "cpu", shared_dir: Path | None = None, **options: Any) -> dict[str, Any]:
+    return convert_with(CALIBRATION, backend, source, out, kind, precision, target, shared_dir, **options)
 
 
 def _build(backend: Backend, source: SourceModel, out: Path, kind: str = "none", precision: str = "fp32",
@@ -189,6 +189,20 @@ def test_torch_thread_count_is_honoured(name: str, source: SourceModel, tmp_path
         session = BACKENDS[name].load(tmp_path, meta, "cpu", "fp32", threads)
         assert torch.get_num_threads() == threads
         assert session.info() == {"device": "cpu", "threads": threads, "interop_threads": 1}
+
+
+def test_onnxruntime_exports_a_source_once_for_all_modes(source: SourceModel, reference: np.ndarray,
+                                                         tmp_path: Path) -> None:
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    backend = BACKENDS["onnxruntime"]
+    _convert(backend, source, tmp_path / "fp32", shared_dir=shared)
+    assert (shared / "fp32.onnx").is_file()
+    # The source file is gone: the int8 conversion can only have used the kept export.
+    gone = SourceModel(**{**source.__dict__, "path": tmp_path / "missing.pt"})
+    meta = _convert(backend, gone, tmp_path / "int8", "ptq_dynamic", "int8", shared_dir=shared)
+    session = backend.load(tmp_path / "int8", meta, "cpu", "int8", 1)
+    assert np.abs(session.predict(X) - reference).max() < 0.1
 
 
 def test_onnxruntime_session_options_and_feed(source: SourceModel, reference: np.ndarray, tmp_path: Path) -> None:

@@ -40,6 +40,9 @@ class ConvertRequest:
     calibration: Callable[[int], np.ndarray]  # n -> first n preprocessed calibration samples
     threads: int
     seed: int
+    # Files derived from this source alone (e.g. its fp32 export), reusable by every conversion of it with this
+    # backend and these library versions; None: nothing is shared.
+    shared_dir: Path | None = None
 
 
 class Session(ABC):

@@ -65,7 +65,9 @@ def train_keras(builtin: str, x: np.ndarray, y: np.ndarray, spec: TrainingSpec, 
     train_s = time.perf_counter() - begin
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f"tmp-{out.name}")  # Keras picks the format from the file ending
-    model.save(tmp)
+    inference = BUILDERS[builtin]()  # uncompiled: the .keras file holds the model, not Adam's two moments
+    inference.set_weights(model.get_weights())
+    inference.save(tmp)
     tmp.replace(out)
     return {"epochs": spec.epochs, "batch_size": spec.batch_size, "lr": spec.lr, "train_s": round(train_s, 2),
             "final_train_loss": float(history.history["loss"][-1]), "train_samples": int(len(x)),
