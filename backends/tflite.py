@@ -11,7 +11,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
-from bench_matrix.matrix.expand import conversion_step
+from bench_matrix.matrix.expand import QAT_KINDS, backend_kind
 from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.sources.tensorflow import tensorflow
 
@@ -19,7 +19,7 @@ from ._common import calibration_data
 from ._tf import tf_versions
 
 FILE = "model.tflite"
-KERAS_FORMATS = ("keras", "h5", "saved_model")
+KERAS_FORMATS = ("keras", "h5", "saved_model", "keras_qat")
 
 
 class TFLiteBackend(Backend):
@@ -29,7 +29,7 @@ class TFLiteBackend(Backend):
     description = ("TensorFlow Lite (LiteRT interpreter) on the CPU: fp32, fp16 weights, dynamic-range int8, "
                    "integer int8 with float or int8 inputs and outputs")
     supports = (Support(("tensorflow",), ("none",), ("fp32", "fp16"), ("cpu",)),
-                Support(("tensorflow",), ("ptq_dynamic", "ptq_static"), ("int8",), ("cpu",)))
+                Support(("tensorflow",), ("ptq_dynamic", "ptq_static", *QAT_KINDS), ("int8",), ("cpu",)))
 
     def versions(self) -> dict[str, str]:
         return tf_versions("ai-edge-litert")
@@ -49,7 +49,7 @@ class TFLiteBackend(Backend):
         return None
 
     def convert(self, request: ConvertRequest) -> dict[str, Any]:
-        step = conversion_step(request.strategy)
+        step = backend_kind(request.strategy)
         if reason := (self.invalid_reason(request.source.framework, step.kind, request.precision, request.target)
                       or self.option_reason(step, request.source.format)):
             raise ValueError(reason)
@@ -82,6 +82,9 @@ def _configure(converter: Any, tf: Any, step: StrategySpec, request: ConvertRequ
         converter.target_spec.supported_types = [tf.float16]
         return {"mode": "fp16", "io": "float",
                 "quantization": {"weights": "float16", "activations": "float32"}}
+    if step.kind in QAT_KINDS:  # quantisation-aware trained: int8 with the ranges learned in fine-tuning
+        return {"mode": "qat", "io": "float",
+                "quantization": {"weights": "int8", "activations": "int8, ranges learned by fake quantisation"}}
     if step.kind == "ptq_dynamic":  # no representative dataset: weights only, activations quantised at run time
         return {"mode": "dynamic_range", "io": "float",
                 "quantization": {"weights": "int8", "per_channel": True,

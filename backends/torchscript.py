@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bench_matrix.backends.base import ConvertRequest, Session, Support
-from bench_matrix.matrix.expand import conversion_step
+from bench_matrix.matrix.expand import backend_kind
 from bench_matrix.matrix.spec import StrategySpec
 
 from ._common import batches, calibration_data, static_options_reason
@@ -24,12 +24,12 @@ class TorchScriptBackend(TorchBackend):
     name = "torchscript"
     description = "TorchScript via torch.jit.trace; int8 by torch.ao dynamic or FX static quantisation"
     supports = (Support(("pytorch",), ("none",), ("fp32",), ("cpu",)),
-                Support(("pytorch",), ("ptq_dynamic", "ptq_static"), ("int8",), ("cpu",)),
+                Support(("pytorch",), ("ptq_dynamic", "ptq_static", "qat"), ("int8",), ("cpu",)),
                 Support(("pytorch",), ("none",), ("fp32", "fp16"), ("cuda",)))
 
     def option_reason(self, step: StrategySpec, source_format: str) -> str | None:
         """torch.ao quantises an nn.Module (a state_dict source) and calibrates with min-max only."""
-        if step.kind == "none":
+        if step.kind in ("none", "qat"):  # qat: the trainer hands over an int8 TorchScript model, saved as it is
             return None
         if source_format != "state_dict":
             kind = {"torchscript": "a TorchScript file", "torch_export": "a torch.export program"}.get(
@@ -42,14 +42,16 @@ class TorchScriptBackend(TorchBackend):
     def convert(self, request: ConvertRequest) -> dict[str, Any]:
         import torch
 
-        step = conversion_step(request.strategy)
+        step = backend_kind(request.strategy)
         if reason := self.option_reason(step, request.source.format):
             raise ValueError(reason)
         torch.set_num_threads(request.threads)
         meta: dict[str, Any] = {"file": FILE, "strategy": step.kind}
         with quiet_torch(captured=step.kind != "none" or request.source.format == "torch_export"):
             module = request.source.load()
-            if step.kind != "none":
+            if step.kind == "qat":
+                meta["quantization"] = {"engine": use_engine(), "ranges": "learned in quantisation-aware training"}
+            elif step.kind != "none":
                 module, meta["quantization"] = _quantise(module, step, request)
             module = place(module, request.target, request.precision)
             device = "cuda" if request.target == "cuda" else "cpu"

@@ -66,7 +66,36 @@ def probe(job: dict[str, Any]) -> dict[str, Any]:
         except Exception as exc:  # a probe that crashes is a reason, not a crash of the run
             skip = f"probing {name} for {target}/{precision} failed: {type(exc).__name__}: {exc}"
         verdicts[json.dumps(key)] = {"invalid": invalid, "skip": skip}
-    return {"backends": described, "verdicts": verdicts}
+    return {"backends": described, "verdicts": verdicts, "trainers": judge_training(job.get("training", []))}
+
+
+def judge_training(keys: list[list[str]]) -> dict[str, dict[str, Any]]:
+    """For each (framework, source format, steps) the first installed trainer that can apply it, or why none."""
+    from bench_matrix.strategies.registry import TrainerLoadError, load_trainer, trainer_names
+
+    trainers, errors = [], []
+    for name in trainer_names():
+        try:
+            trainers.append(load_trainer(name))
+        except TrainerLoadError as exc:
+            errors.append(str(exc))
+    verdicts = {}
+    for framework, source_format, steps_json in keys:
+        steps = tuple(StrategySpec.from_dict(s) for s in json.loads(steps_json))
+        kinds = ", ".join(s.kind or "" for s in steps)
+        mine = [t for t in trainers if t.framework == framework]
+        reasons = [f"{t.name}: {r}" for t in mine if (r := t.steps_reason(steps, source_format))]
+        able = [t for t in mine if not t.steps_reason(steps, source_format)]
+        if not able:
+            why = "; ".join(reasons + errors) or f"no installed trainer fine-tunes {framework} models"
+            verdicts[json.dumps([framework, source_format, steps_json])] = {"invalid": f"{kinds}: {why}"}
+            continue
+        try:
+            skip = able[0].probe()
+        except Exception as exc:  # a probe that crashes is a reason, not a crash of the run
+            skip = f"probing trainer {able[0].name} failed: {type(exc).__name__}: {exc}"
+        verdicts[json.dumps([framework, source_format, steps_json])] = {"skip": skip, "by": able[0].name}
+    return verdicts
 
 
 def prepare_dataset(job: dict[str, Any]) -> dict[str, Any]:
@@ -110,6 +139,50 @@ def prepare_model(job: dict[str, Any]) -> dict[str, Any]:
     return result
 
 
+def finetune(job: dict[str, Any]) -> dict[str, Any]:
+    """Fine-tune the pristine source with the strategy's training steps, once per content hash; the new source."""
+    from bench_matrix.matrix.expand import training_steps
+    from bench_matrix.strategies.base import FineTuneRequest
+    from bench_matrix.strategies.registry import load_trainer
+
+    ws, settings, dinfo = Workspace(Path(job["workspace"])), job["settings"], job["dataset_info"]
+    source, trainer = SourceModel.from_dict(job["source"]), load_trainer(job["trainer"])
+    steps = training_steps(job["strategy"])
+    key = digest({"source": source.sha256, "trainer": trainer.name, "versions": trainer.versions(),
+                  "steps": [s.to_dict() for s in steps], "dataset": dinfo["fingerprint"], "layout": job["layout"],
+                  "seed": settings.seed})
+    final = ws.root / "cache" / "finetuned" / key
+    if not (final / "finetuned.json").is_file():
+        phase("finetune")
+        tmp = final.with_name(f"{final.name}.tmp{os.getpid()}")
+        shutil.rmtree(tmp, ignore_errors=True)
+        (tmp / "model").mkdir(parents=True)
+
+        def train(fraction: float) -> tuple[np.ndarray, np.ndarray]:
+            x, y = data.load_split(Path(job["dataset_dir"]), "train", job["preprocess"], job["layout"])
+            order = np.random.default_rng(settings.seed).permutation(len(x))[:max(1, round(len(x) * fraction))]
+            return x[np.sort(order)], y[np.sort(order)]
+
+        request = FineTuneRequest(source=source, steps=steps, out_dir=tmp / "model", train=train,
+                                  threads=len(os.sched_getaffinity(0)), seed=settings.seed)
+        begin = time.perf_counter()
+        result = trainer.finetune(request)
+        facts = {**result.facts, "finetune_s": time.perf_counter() - begin, "trainer": trainer.name,
+                 "trainer_versions": trainer.versions()}
+        (tmp / "finetuned.json").write_text(json.dumps({"file": result.file, "format": result.format,
+                                                        "facts": facts}, default=str))
+        try:
+            tmp.rename(final)
+        except OSError:  # another process finished the same fine-tuning first: keep theirs
+            shutil.rmtree(tmp, ignore_errors=True)
+    done = json.loads((final / "finetuned.json").read_text())
+    path = final / "model" / done["file"]
+    tuned = SourceModel(name=source.name, framework=source.framework, format=done["format"], path=path,
+                        sha256=file_sha256(path), input_shape=source.input_shape, factory=source.factory,
+                        python_path=source.python_path)
+    return {"source": tuned.to_dict(), "facts": done["facts"]}
+
+
 def convert(job: dict[str, Any]) -> dict[str, Any]:
     phase("convert")
     source = SourceModel.from_dict(job["source"])
@@ -146,9 +219,18 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
                **accuracy(pred, y, reference), "latency_ms": latency_summary(durations), **stability, **rate,
                "batch_size": settings.batch_size, "peak_rss_mb": round(peak_rss_mb, 1),
                "convert_s": manifest["convert_s"], "load_s": load_s, "threads": settings.threads,
-               "artifact_cached": job["cached"], "session": session.info(), "test_samples": int(len(y))}
+               "artifact_cached": job["cached"], "session": session.info(), "test_samples": int(len(y)),
+               **_finetune_metrics(job.get("finetune"), manifest["convert_s"])}
     return {"metrics": metrics, "env": {**environment.capture(), "backend_versions": backend.versions(),
                                         "runtime": session.info()}}
+
+
+def _finetune_metrics(facts: dict[str, Any] | None, convert_s: float) -> dict[str, Any]:
+    """For a fine-tuned model: convert_s including the fine-tuning, finetune_s, sparsity, clusters, the facts."""
+    if not facts:
+        return {}
+    return {"convert_s": convert_s + facts["finetune_s"], "finetune_s": facts["finetune_s"],
+            "sparsity": facts.get("sparsity"), "clusters": facts.get("clusters"), "finetune": facts}
 
 
 def predict_all(session: Session, x: np.ndarray, batch_size: int) -> np.ndarray:

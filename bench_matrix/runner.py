@@ -15,7 +15,7 @@ from bench_matrix.cell import Cell, PlannedCell
 from bench_matrix.errors import StepError, UserError
 from bench_matrix.launcher import Outcome, run_job
 from bench_matrix.matrix.load import suggest
-from bench_matrix.matrix.expand import Expansion, Verdict, combinations, plan, verdict_key
+from bench_matrix.matrix.expand import Expansion, TrainingKey, Verdict, combinations, plan, training_key, verdict_key
 from bench_matrix.matrix.spec import Matrix, ModelSpec
 from bench_matrix.measure import env as environment
 from bench_matrix.progress import RunProgress
@@ -50,6 +50,7 @@ class Planned:
 
     expansion: Expansion
     backends: dict[str, Any]
+    trainers: dict[TrainingKey, Verdict] = field(default_factory=dict)  # which trainer applies each fine-tuning
 
     def baseline_backend(self, framework: str) -> str | None:
         return next((n for n, b in self.backends.items() if framework in b.get("baseline_for", [])), None)
@@ -60,13 +61,15 @@ def resolve(matrix: Matrix, workspace: Workspace) -> Planned:
     installed = list(available())
     cells, excluded = combinations(matrix, installed)
     keys = sorted({verdict_key(matrix, c) for c in cells})
+    training = sorted({k for c in cells if (k := training_key(matrix, c))})
     names = sorted(set(installed) | {k[0] for k in keys})
-    outcome = run_job({"mode": "probe", "backends": names, "keys": keys}, workspace.root / "jobs",
-                      workspace.logs / "probe.log", PROBE_TIMEOUT_S)
+    outcome = run_job({"mode": "probe", "backends": names, "keys": keys, "training": training},
+                      workspace.root / "jobs", workspace.logs / "probe.log", PROBE_TIMEOUT_S)
     if not outcome.ok:
         raise UserError(f"probing the installed backends failed: {outcome.error}")
     verdicts = {tuple(json.loads(k)): Verdict(**v) for k, v in outcome.value["verdicts"].items()}
-    return Planned(plan(matrix, cells, excluded, verdicts), outcome.value["backends"])
+    trainers = {tuple(json.loads(k)): Verdict(**v) for k, v in outcome.value["trainers"].items()}
+    return Planned(plan(matrix, cells, excluded, verdicts, trainers), outcome.value["backends"], trainers)
 
 
 class Runner:
@@ -115,7 +118,7 @@ class Runner:
             if not prepared.ok:
                 record = self._record(p.cell, "failed", f"preparing model {model.name} failed: {prepared.error}", started)
             else:
-                record = self._run_cell(p.cell, model, prepared.value, progress, started)
+                record = self._run_cell(p.cell, model, prepared.value, planned, progress, started)
             self.store.put(record)
             progress.finished(record)
             yield record
@@ -164,15 +167,21 @@ class Runner:
             self.store.put_fact(f"model:{model.name}", "info", outcome.value["info"])
         return outcome
 
-    def _run_cell(self, cell: Cell, model: ModelSpec, prepared: dict[str, Any], progress: RunProgress,
-                  started: str) -> CellRecord:
+    def _run_cell(self, cell: Cell, model: ModelSpec, prepared: dict[str, Any], planned: Planned,
+                  progress: RunProgress, started: str) -> CellRecord:
         settings = self.matrix.settings
         job = {"cell": cell, "source": prepared["source"], "strategy": self.matrix.strategies[cell.strategy],
                "dataset_dir": self._dataset["dir"], "dataset_info": self._dataset["info"],
                "preprocess": self.matrix.dataset.preprocess, "layout": model.layout, "settings": settings,
                "workspace": str(self.ws.root), "reference": prepared["reference"]}
-        deadline = time.monotonic() + settings.timeout_s
         log = self.ws.logs / f"{cell.key.replace('/', '__')}.log"
+        if key := training_key(self.matrix, cell):  # fine-tune first (all cores, cached): a new source model
+            tuned = run_job({**job, "mode": "finetune", "trainer": planned.trainers[key].by}, self.ws.root / "jobs",
+                            log, PREPARE_TIMEOUT_S, on_phase=progress.phase, tick=progress.tick)
+            if not tuned.ok:
+                return self._record(cell, "failed", f"finetune: {tuned.error}", started)
+            job = {**job, "source": tuned.value["source"], "finetune": tuned.value["facts"]}
+        deadline = time.monotonic() + settings.timeout_s
         converted = run_job({**job, "mode": "convert"}, self.ws.root / "jobs", log, settings.timeout_s,
                             settings.threads, progress.phase, progress.tick)
         if not converted.ok:

@@ -9,7 +9,7 @@ import pytest
 
 from bench_matrix.errors import MatrixError
 from bench_matrix.matrix import load_matrix
-from bench_matrix.matrix.expand import Verdict, combinations, plan, verdict_key
+from bench_matrix.matrix.expand import training_key, Verdict, combinations, plan, verdict_key
 from bench_matrix.matrix.schema import schema_json
 
 BASE = """\
@@ -175,13 +175,19 @@ include:
     assert states["a/x/ptq_dynamic/int8/cpu"] == ("run", None)
 
 
-def test_training_strategies_are_planned_as_not_yet_implemented(tmp_path):
+def test_training_strategies_need_a_trainer_and_backends_are_asked_for_the_qat_kind(tmp_path):
     text = BASE.replace("strategy: [none, ptq_dynamic]", "strategy: [qat]") + "  backend: [x]\n"
     matrix = load_matrix(write(tmp_path, text))
     cells, excluded = combinations(matrix, ["x"])
-    expansion = plan(matrix, cells, excluded, {verdict_key(matrix, c): Verdict() for c in cells})
-    assert {p.state for p in expansion.cells} == {"invalid"}
-    assert "fine-tunes the model (qat)" in expansion.cells[0].reason
+    verdicts = {verdict_key(matrix, c): Verdict() for c in cells}
+    assert {key[2] for key in verdicts} == {"qat"}  # a QAT model with no conversion step: the backend converts "qat"
+    unjudged = plan(matrix, cells, excluded, verdicts)
+    assert {p.state for p in unjudged.cells} == {"invalid"} and "no installed trainer" in unjudged.cells[0].reason
+    keys = {training_key(matrix, c) for c in cells}
+    refused = plan(matrix, cells, excluded, verdicts, {k: Verdict(invalid="qat: torch: no such thing") for k in keys})
+    assert refused.cells[0].reason == "qat: torch: no such thing"
+    able = plan(matrix, cells, excluded, verdicts, {k: Verdict(by="torch") for k in keys})
+    assert {p.state for p in able.cells} == {"run"}
 
 
 def test_published_schema_is_current():

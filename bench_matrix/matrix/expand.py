@@ -14,6 +14,9 @@ from bench_matrix.matrix.spec import Matrix, StrategySpec
 # (backend, framework, conversion kind, precision, target, source format, conversion options as JSON):
 # everything a backend needs to judge a combination before any model is loaded
 VerdictKey = tuple[str, str, str, str, str, str, str]
+# (framework, source format, training steps as JSON): what a trainer needs to judge a fine-tuning strategy
+TrainingKey = tuple[str, str, str]
+QAT_KINDS = ("qat", "cqat", "pqat", "pcqat")  # training kinds whose result carries learned int8 ranges
 
 
 @dataclass(frozen=True)
@@ -22,6 +25,7 @@ class Verdict:
 
     invalid: str | None = None
     skip: str | None = None
+    by: str | None = None  # for a fine-tuning strategy: the trainer that will apply it
 
 
 @dataclass(frozen=True)
@@ -50,10 +54,35 @@ def training_kinds(strategy: StrategySpec) -> list[str]:
     return [k for k in strategy.kinds() if STRATEGY_KINDS[k]["stage"] == "training"]
 
 
+def training_steps(strategy: StrategySpec) -> tuple[StrategySpec, ...]:
+    """The fine-tuning steps of a strategy, in order, each with its own options."""
+    leaves = [strategy] if not strategy.steps else [leaf for step in strategy.steps for leaf in _leaves(step)]
+    return tuple(s for s in leaves if s.kind and STRATEGY_KINDS[s.kind]["stage"] == "training")
+
+
+def backend_kind(strategy: StrategySpec) -> StrategySpec:
+    """What the backend is asked to do: the conversion step, or for a quantisation-aware-trained model with no
+    conversion step, its QAT kind (the model carries its learned int8 ranges)."""
+    step = conversion_step(strategy)
+    if step.kind == "none":
+        qat = [s for s in training_steps(strategy) if s.kind in QAT_KINDS]
+        if qat:
+            return StrategySpec(name=qat[-1].kind, kind=qat[-1].kind)
+    return step
+
+
 def verdict_key(matrix: Matrix, cell: Cell) -> VerdictKey:
-    step = conversion_step(matrix.strategies[cell.strategy])
+    step = backend_kind(matrix.strategies[cell.strategy])
     return (cell.backend, cell.framework, step.kind or "none", cell.precision, cell.target,
             matrix.model(cell.model).source_format, json.dumps(step.options, sort_keys=True))
+
+
+def training_key(matrix: Matrix, cell: Cell) -> TrainingKey | None:
+    """(framework, source format, steps as JSON) when the cell's strategy fine-tunes the model, else None."""
+    steps = training_steps(matrix.strategies[cell.strategy])
+    if not steps:
+        return None
+    return (cell.framework, matrix.model(cell.model).source_format, json.dumps([s.to_dict() for s in steps]))
 
 
 def combinations(matrix: Matrix, installed: Iterable[str]) -> tuple[list[Cell], int]:
@@ -78,20 +107,24 @@ def combinations(matrix: Matrix, installed: Iterable[str]) -> tuple[list[Cell], 
     return list(cells), excluded
 
 
-def plan(matrix: Matrix, cells: list[Cell], excluded: int, verdicts: Mapping[VerdictKey, Verdict]) -> Expansion:
-    """Judge each candidate: invalid (training not implemented, backend does not do it), skip, or run."""
+def plan(matrix: Matrix, cells: list[Cell], excluded: int, verdicts: Mapping[VerdictKey, Verdict],
+         trainers: Mapping[TrainingKey, Verdict] | None = None) -> Expansion:
+    """Judge each candidate: invalid (no trainer, backend does not do it), skip, or run."""
     planned = []
     for cell in cells:
-        training = training_kinds(matrix.strategies[cell.strategy])
+        key = training_key(matrix, cell)
+        training = (trainers or {}).get(key) if key else None
         verdict = verdicts[verdict_key(matrix, cell)]
-        if training:
-            planned.append(PlannedCell(cell, "invalid", f"strategy {cell.strategy} fine-tunes the model "
-                                                        f"({', '.join(training)}); no training-aware implementation "
-                                                        f"for {cell.framework} models is installed yet"))
+        if key and training is None:
+            planned.append(PlannedCell(cell, "invalid", f"strategy {cell.strategy} fine-tunes the model; no "
+                                                        f"installed trainer judged it"))
+        elif training and training.invalid:
+            planned.append(PlannedCell(cell, "invalid", training.invalid))
         elif verdict.invalid:
             planned.append(PlannedCell(cell, "invalid", verdict.invalid))
-        elif verdict.skip:
-            planned.append(PlannedCell(cell, "skip", verdict.skip))
+        elif verdict.skip or (training and training.skip):
+            planned.append(PlannedCell(cell, "skip", "; ".join(r for r in (verdict.skip, training and training.skip)
+                                                               if r)))
         else:
             planned.append(PlannedCell(cell, "run"))
     return Expansion(cells=tuple(planned), excluded=excluded)

@@ -115,6 +115,11 @@ class StrategySpec:
         return {"name": self.name, "kind": self.kind, "options": dict(sorted(self.options.items())),
                 "steps": [s.to_dict() for s in self.steps]}
 
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "StrategySpec":
+        return cls(name=data["name"], kind=data["kind"], options=dict(data.get("options") or {}),
+                   steps=tuple(cls.from_dict(s) for s in data.get("steps") or ()))
+
 
 @dataclass(frozen=True)
 class Settings:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from bench_matrix.report.summary import ModelSummary, Report, Row, metric, number, p50
@@ -52,6 +52,7 @@ class Column:
     note: str
     render: Callable[[Row], str]
     group: str
+    optional: bool = False  # left out of a table where no row has a value
 
     @property
     def numeric(self) -> bool:
@@ -85,6 +86,14 @@ COLUMNS: tuple[Column, ...] = (
            lambda r: mib(metric(r.record, "size_gzip_bytes")), SIZE),
     Column("Size\nratio", "baseline size ÷ cell size: above 1× the cell's artifact is that many times smaller.",
            lambda r: times(r.size_ratio), SIZE),
+    Column("Sparsity", "fraction of exactly-zero weights in the convolution and dense kernels of a fine-tuned "
+           "(pruned or clustered) model.", lambda r: fixed(metric(r.record, "sparsity"), 3), SIZE, optional=True),
+    Column("Clusters", "most distinct values held by any one weight kernel of a fine-tuned model (clustering "
+           "keeps at most its number of clusters).", lambda r: fixed(metric(r.record, "clusters"), 0), SIZE,
+           optional=True),
+    Column("Fine-tune\ns", "seconds spent fine-tuning the source model (cached: shared by every backend of the "
+           "strategy; included in convert_s).", lambda r: fixed(metric(r.record, "finetune_s"), 0), SIZE,
+           optional=True),
     Column("MSE", "mean squared error on the normalised labels of the test split.",
            lambda r: sig(metric(r.record, "mse"), 4), ACCURACY),
     Column("ΔMSE", "cell MSE minus baseline MSE (positive = less accurate than the baseline).",
@@ -108,6 +117,12 @@ COLUMNS: tuple[Column, ...] = (
     Column("vs own\nfp32", "the same backend's fp32 cell (strategy none, same target) p50 ÷ cell p50: what the "
            "optimisation gains within one runtime.", lambda r: times(r.speedup_own_fp32), SPEED),
 )
+
+
+def shown(columns: Iterable[Column], rows: Iterable[Row]) -> list[Column]:
+    """The columns worth a place in a table of these rows: optional ones only where some row has a value."""
+    rows = list(rows)
+    return [c for c in columns if not c.optional or any(c.render(r) != DASH for r in rows)]
 
 
 def caption(model: ModelSummary) -> str:

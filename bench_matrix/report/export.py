@@ -15,7 +15,8 @@ CELL_COLUMNS = ("key", "model", "framework", "backend", "strategy", "precision",
 LATENCY_STATS = ("mean", "p50", "p90", "p99", "std", "min")
 CSV_COLUMNS = (*CELL_COLUMNS, "status", "reason", "size_bytes", "size_mib", "size_gzip_bytes", "size_gzip_mib",
                "params", "mse", "mae", "max_abs_diff_vs_baseline", *(f"latency_{s}_ms" for s in LATENCY_STATS),
-               "latency_n", "throughput_sps", "batch_size", "peak_rss_mb", "convert_s", "load_s", "threads",
+               "latency_n", "throughput_sps", "batch_size", "peak_rss_mb", "convert_s", "finetune_s", "sparsity",
+               "clusters", "load_s", "threads",
                "artifact_cached", "speedup_vs_baseline", "size_ratio_vs_baseline", "mse_delta_vs_baseline")
 
 

@@ -17,6 +17,7 @@ from bench_matrix.report.columns import (
     model_line,
     mse_line,
     run_line,
+    shown,
     sig,
 )
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline, number
@@ -73,10 +74,11 @@ def model_page(model: ModelSummary) -> str:
         lines += [f"> **Note:** {note}", ""]
     lines += ["## Results", ""]
     if model.rows:
+        columns = shown(COLUMNS, model.rows)
         lines += [caption(model), "",
-                  _table([_header(c) for c in COLUMNS], [c.numeric for c in COLUMNS],
-                         [[_escape(c.render(row)) for c in COLUMNS] for row in model.rows]),
-                  "", "Columns:", "", *(f"- **{_header(c)}**: {c.note}" for c in COLUMNS),
+                  _table([_header(c) for c in columns], [c.numeric for c in columns],
+                         [[_escape(c.render(row)) for c in columns] for row in model.rows]),
+                  "", "Columns:", "", *(f"- **{_header(c)}**: {c.note}" for c in columns),
                   "", f"{_COLUMN_NOTES} {DASH} means the metric was not recorded for that cell.", ""]
     else:
         lines += ["No cell of this model produced a result.", ""]

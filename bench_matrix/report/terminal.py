@@ -16,6 +16,7 @@ from bench_matrix.report.columns import (
     SPEED,
     THROUGHPUT,
     Column,
+    shown,
     baseline_note,
     best_text,
     caption,
@@ -75,13 +76,13 @@ def results_tables(model: ModelSummary, console: Console) -> list[Table]:
     return [_results_table(model, groups, last=i == len(layout) - 1) for i, groups in enumerate(layout)]
 
 
-def _columns(groups: tuple[str, ...]) -> list[Column]:
-    return [c for c in COLUMNS if not c.group or c.group in groups]
+def _columns(groups: tuple[str, ...], model: ModelSummary) -> list[Column]:
+    return shown((c for c in COLUMNS if not c.group or c.group in groups), model.rows)
 
 
 def _width(model: ModelSummary, groups: tuple[str, ...]) -> int:
     """Width of the table without wrapping: widest cell per column, one space of padding each side, borders."""
-    texts = [[*c.header.split("\n"), *(c.render(row) for row in model.rows)] for c in _columns(groups)]
+    texts = [[*c.header.split("\n"), *(c.render(row) for row in model.rows)] for c in _columns(groups, model)]
     return sum(max(map(cell_len, column)) + 3 for column in texts) + 1
 
 
@@ -89,7 +90,7 @@ def _results_table(model: ModelSummary, groups: tuple[str, ...], last: bool) -> 
     title = f"{model.name}: {'results' if len(groups) == len(_LAYOUTS[0][0]) else ', '.join(groups)}"
     table = Table(title=title, title_justify="left", caption=caption(model) if last else None,
                   caption_justify="left")
-    columns = _columns(groups)
+    columns = _columns(groups, model)
     for column in columns:
         widest = max(cell_len(column.render(row)) for row in model.rows)
         table.add_column(column.header, justify="right" if column.numeric else "left",

@@ -6,7 +6,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-FORMATS = ("torchscript", "torch_export", "state_dict", "onnx", "keras", "h5", "saved_model")
+# keras_qat: a quantisation-aware-trained Keras model, written by the tfmot trainer (loaded in tfmot's scope)
+FORMATS = ("torchscript", "torch_export", "state_dict", "onnx", "keras", "h5", "saved_model", "keras_qat")
 
 
 @dataclass(frozen=True)

@@ -47,6 +47,10 @@ def load_keras(source: "SourceModel") -> Any:
     from tf_keras.src.saving.serialization_lib import SafeModeScope
 
     path = str(source.path)
+    if source.format == "keras_qat":  # our own trainer's output, in the workspace cache
+        from bench_matrix.strategies.tfmot import load_qat
+
+        return load_qat(source.path)
     try:
         with SafeModeScope(True):
             model = k.models.load_model(path, compile=False)

@@ -1,0 +1,1 @@
+"""Training-aware strategies: trainers that fine-tune a source model before a backend converts it."""

@@ -1,0 +1,73 @@
+"""Training-aware strategies end to end through the CLI: fine-tuned once, shared by backends, measured honestly."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from conftest import cli, matrix_text
+from test_cli_tensorflow import _keras_project, _records
+
+pytestmark = pytest.mark.slow
+
+TORCH_STRATEGIES = (
+    "strategies:\n"
+    "  prune_local: {kind: prune, scope: local, conv_sparsity: 0.3, linear_sparsity: 0.5, epochs: 1, fraction: 0.5}\n"
+    "  prune_global: {kind: prune, scope: global, final_sparsity: 0.4, epochs: 1, fraction: 0.5}\n"
+    "  qat: {kind: qat, epochs: 1, fraction: 0.5}\n"
+    "  prune_dynamic: {steps: [prune_local, ptq_dynamic]}\n")
+
+
+def test_pytorch_pruning_and_qat(tiny_project: Path) -> None:
+    text = matrix_text(["torchscript", "onnxruntime"], ["prune_local", "prune_global", "qat", "prune_dynamic"],
+                       ["fp32", "int8"], ["cpu"], TORCH_STRATEGIES)
+    (tiny_project / "m.yaml").write_text(text)
+    run = cli(tiny_project, "run", "m.yaml", timeout=900)
+    assert run.returncode == 0 and "0 failed" in run.stdout, run.stdout + run.stderr
+    found = {key: r for key, r in _records(tiny_project).items() if r["status"] == "ok"}
+    assert set(found) == {"torchscript/prune_local/fp32/cpu", "onnxruntime/prune_local/fp32/cpu",
+                          "torchscript/prune_global/fp32/cpu", "onnxruntime/prune_global/fp32/cpu",
+                          "torchscript/qat/int8/cpu", "torchscript/prune_dynamic/int8/cpu",
+                          "onnxruntime/prune_dynamic/int8/cpu"}
+    local = found["torchscript/prune_local/fp32/cpu"]["metrics"]
+    # conv 0.3 and linear 0.5 of their weights: overall between the two, never below the smaller target
+    assert 0.3 <= local["sparsity"] <= 0.5
+    assert found["torchscript/prune_global/fp32/cpu"]["metrics"]["sparsity"] >= 0.4
+    # one fine-tuning per strategy, shared by every backend: the same facts, the time counted in convert_s
+    assert local["finetune"] == found["onnxruntime/prune_local/fp32/cpu"]["metrics"]["finetune"]
+    assert local["convert_s"] >= local["finetune_s"] > 0
+    # the combination starts from the pristine model too: pruned like prune_local, then quantised
+    assert found["torchscript/prune_dynamic/int8/cpu"]["metrics"]["sparsity"] == pytest.approx(local["sparsity"])
+    plan = cli(tiny_project, "plan", "m.yaml")
+    assert "onnxruntime does not implement qat" in plan.stdout or "combinations it does not implement" in plan.stdout
+
+
+TF_STRATEGIES = (
+    "strategies:\n"
+    "  prune: {kind: prune, final_sparsity: 0.6, epochs: 2, fraction: 1.0}\n"
+    "  cluster: {kind: cluster, clusters: 4, epochs: 1, fraction: 1.0}\n"
+    "  qat: {kind: qat, epochs: 1, fraction: 1.0}\n"
+    "  prune_dynamic: {steps: [prune, ptq_dynamic]}\n")
+
+
+def test_tensorflow_pruning_clustering_and_qat_in_tflite(tmp_path: Path) -> None:
+    project = _keras_project(tmp_path, "tiny.keras")
+    (project / "m.yaml").write_text(
+        "models:\n  - {name: tiny, framework: tensorflow, file: tiny.keras}\n"
+        "dataset: {npz: data.npz, split: {train: 0.5, calibration: 0.25, test: 0.25}}\n" + TF_STRATEGIES +
+        "axes: {backend: [tflite], strategy: [prune, cluster, qat, prune_dynamic], precision: [fp32, int8], "
+        "target: [cpu]}\n"
+        "settings: {min_iterations: 5, min_time_s: 0.02, warmup_iterations: 2, warmup_s: 0.0, "
+        "throughput_time_s: 0.02, batch_size: 8, timeout_s: 300}\n")
+    run = cli(project, "run", "m.yaml", timeout=900)
+    assert run.returncode == 0 and "0 failed" in run.stdout, run.stdout + run.stderr
+    found = {key: r for key, r in _records(project).items() if r["status"] == "ok"}
+    assert set(found) == {"tflite/prune/fp32/cpu", "tflite/cluster/fp32/cpu", "tflite/qat/int8/cpu",
+                          "tflite/prune_dynamic/int8/cpu"}
+    assert found["tflite/prune/fp32/cpu"]["metrics"]["sparsity"] >= 0.6 - 0.02  # tfmot rounds per layer
+    assert found["tflite/cluster/fp32/cpu"]["metrics"]["clusters"] <= 4
+    qat = found["tflite/qat/int8/cpu"]["metrics"]
+    assert qat["session"]["interpreter"].startswith("ai_edge_litert")
+    assert json.dumps(qat["finetune"])  # facts are recorded

@@ -1,0 +1,161 @@
+"""TfmotTrainer with the real tensorflow-model-optimization on a tiny Keras model (a few seconds per kind)."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+pytest.importorskip("tensorflow_model_optimization")
+
+import tiny_keras
+
+from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.sources import SourceModel
+from bench_matrix.sources.tensorflow import keras, tensorflow
+from bench_matrix.strategies.base import FineTuneRequest, weight_stats
+from bench_matrix.strategies.tfmot import QAT_FORMAT, TfmotTrainer, _kernels, load_qat
+
+FAST = {"fraction": 1.0, "batch_size": 32, "lr": 1e-3}
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def source(tmp_path_factory: pytest.TempPathFactory) -> SourceModel:
+    path = tiny_keras.save_trained(tmp_path_factory.mktemp("src") / "tiny.keras", epochs=10)
+    return SourceModel("tiny", "tensorflow", "keras", path, _sha(path), tiny_keras.INPUT_SHAPE)
+
+
+@pytest.fixture(scope="module")
+def data() -> tuple[np.ndarray, np.ndarray]:
+    x = tiny_keras.images(128, 7)
+    return x, tiny_keras.colour_balance(x)
+
+
+def _run(source: SourceModel, data: Any, out: Path, *steps: tuple[str, dict[str, Any]]) -> Any:
+    x, y = data
+    specs = tuple(StrategySpec(f"{kind}_{i}", kind, {**FAST, **opts}) for i, (kind, opts) in enumerate(steps))
+    request = FineTuneRequest(source=source, steps=specs, out_dir=out,
+                              train=lambda f: (x[:int(len(x) * f)], y[:int(len(y) * f)]), threads=2, seed=0)
+    return TfmotTrainer().finetune(request)
+
+
+def _per_channel_clusters(kernels: list[np.ndarray]) -> int:
+    """Most distinct values in one output channel of any kernel: CQAT's per-channel 8-bit quantisation of conv
+    kernels keeps the clusters within each channel (each channel's centroids are scaled on their own)."""
+    return max(len(np.unique(c)) for k in kernels for c in np.moveaxis(k, -1, 0))
+
+
+def _load(out: Path, result: Any) -> Any:
+    path = out / result.file
+    assert path.exists() and path.parent == out
+    if result.format == QAT_FORMAT:
+        return load_qat(path)
+    assert result.format == "keras"
+    return keras().models.load_model(path, compile=False)
+
+
+def test_prune_reaches_target_and_leaves_the_source_alone(source: SourceModel, data: Any, tmp_path: Path) -> None:
+    before = _sha(source.path)
+    result = _run(source, data, tmp_path, ("prune", {"final_sparsity": 0.6, "initial_sparsity": 0.3,
+                                                     "epochs": 2}))
+    assert _sha(source.path) == before == source.sha256
+    kernels = _kernels(_load(tmp_path, result))
+    # Every Conv2D/Dense kernel is pruned (BatchNormalization has no kernel and is not counted), and tfmot
+    # keeps exactly round(0.6 * size) zeros per kernel, so the measured sparsity reaches the target (a
+    # rounding tolerance of one weight per kernel).
+    assert len(kernels) == 4 and result.facts["pruned_kernel_sparsity"] == result.facts["sparsity"]
+    tol = len(kernels) / sum(k.size for k in kernels)
+    assert weight_stats(kernels)["sparsity"] >= 0.6 - tol
+    assert result.facts["sparsity"] == pytest.approx(weight_stats(kernels)["sparsity"])
+    assert result.facts["target_sparsity"] == 0.6 and result.facts["prune"]["schedule"] == "polynomial"
+    assert np.isfinite(result.facts["final_loss"])
+
+
+def test_cluster_limits_distinct_values(source: SourceModel, data: Any, tmp_path: Path) -> None:
+    result = _run(source, data, tmp_path, ("cluster", {"clusters": 4, "epochs": 1}))
+    kernels = _kernels(_load(tmp_path, result))
+    assert len(kernels) == 4 and all(len(np.unique(k)) <= 4 for k in kernels)
+    assert result.facts["clusters"] <= 4 and result.facts["target_clusters"] == 4
+
+
+def test_qat_round_trips_and_converts_to_int8(source: SourceModel, data: Any, tmp_path: Path) -> None:
+    tf = tensorflow()
+    result = _run(source, data, tmp_path, ("qat", {"epochs": 1}))
+    assert result.format == QAT_FORMAT and (tmp_path / result.file).is_dir()
+    model = _load(tmp_path, result)
+    # The leading BatchNormalization is not in tfmot's 8-bit registry: it stays float, and the facts say so.
+    assert any("BatchNormalization" in name for name in result.facts["qat"]["float_layers"])
+    x, _ = data
+    float_out = source.load().predict(x[:32], verbose=0)
+    qat_out = model.predict(x[:32], verbose=0)
+    assert np.all(np.isfinite(qat_out))
+    # Targets span about [-1.5, 1]; 8-bit fake quantisation plus one epoch at lr 1e-3 moves outputs a little:
+    # within 0.25 of the float model (a broken model is off by the whole output range).
+    assert np.max(np.abs(qat_out - float_out)) < 0.25
+    converter = tf.lite.TFLiteConverter.from_keras_model(model)
+    converter.optimizations = [tf.lite.Optimize.DEFAULT]
+    interpreter = tf.lite.Interpreter(model_content=converter.convert())
+    dtypes = {d["dtype"] for d in interpreter.get_tensor_details()}
+    assert np.int8 in dtypes
+
+
+def test_pqat_preserves_sparsity(source: SourceModel, data: Any, tmp_path: Path) -> None:
+    result = _run(source, data, tmp_path, ("pqat", {"final_sparsity": 0.5, "prune_epochs": 1, "qat_epochs": 1}))
+    kernels = _kernels(_load(tmp_path, result))
+    tol = len(kernels) / sum(k.size for k in kernels)
+    assert result.format == QAT_FORMAT and weight_stats(kernels)["sparsity"] >= 0.5 - tol
+    assert result.facts["qat"]["scheme"] == "prune_preserve"
+
+
+def test_cqat_preserves_clusters(source: SourceModel, data: Any, tmp_path: Path) -> None:
+    result = _run(source, data, tmp_path, ("cqat", {"clusters": 4, "cluster_epochs": 1, "qat_epochs": 1}))
+    kernels = _kernels(_load(tmp_path, result))
+    assert result.format == QAT_FORMAT and _per_channel_clusters(kernels) <= 4
+    assert result.facts["clusters_per_channel"] == _per_channel_clusters(kernels)
+
+
+def test_pcqat_preserves_both(source: SourceModel, data: Any, tmp_path: Path) -> None:
+    result = _run(source, data, tmp_path, ("pcqat", {"final_sparsity": 0.5, "clusters": 4, "prune_epochs": 1,
+                                                      "cluster_epochs": 1, "qat_epochs": 1}))
+    kernels = _kernels(_load(tmp_path, result))
+    tol = len(kernels) / sum(k.size for k in kernels)
+    assert weight_stats(kernels)["sparsity"] >= 0.5 - tol
+    assert _per_channel_clusters(kernels) <= 4
+
+
+def test_steps_prune_then_qat_is_pqat(source: SourceModel, data: Any, tmp_path: Path) -> None:
+    result = _run(source, data, tmp_path, ("prune", {"final_sparsity": 0.5, "schedule": "constant", "epochs": 1}),
+                  ("qat", {"epochs": 1}))
+    assert result.format == QAT_FORMAT and result.facts["phases"] == ["prune", "qat"]
+    assert result.facts["qat"]["scheme"] == "prune_preserve"
+    kernels = _kernels(_load(tmp_path, result))
+    assert weight_stats(kernels)["sparsity"] >= 0.5 - len(kernels) / sum(k.size for k in kernels)
+
+
+def test_strategies_from_one_source_do_not_interact(source: SourceModel, data: Any, tmp_path: Path) -> None:
+    source_zeros = weight_stats(_kernels(source.load()))["sparsity"]
+    _run(source, data, tmp_path / "p", ("prune", {"final_sparsity": 0.8, "epochs": 1}))
+    result = _run(source, data, tmp_path / "c", ("cluster", {"clusters": 8, "epochs": 1}))
+    # Clustering a pruned model would leave ~80 % zeros; from the pristine source, at most one of 8 centroids
+    # may sit at zero by chance, far below that.
+    assert result.facts["sparsity"] < max(0.3, source_zeros + 0.2)
+
+
+def test_steps_reason() -> None:
+    t = TfmotTrainer()
+    assert t.steps_reason((StrategySpec("p", "prune", {}),), "keras") is None
+    assert "Keras" in t.steps_reason((StrategySpec("p", "prune", {}),), "onnx")
+    assert "global" in t.steps_reason((StrategySpec("p", "prune", {"scope": "global"}),), "keras")
+    assert "order" in t.steps_reason((StrategySpec("q", "qat", {}), StrategySpec("p", "prune", {})), "h5")
+    assert "at most once" in t.steps_reason((StrategySpec("q", "pqat", {}), StrategySpec("p", "qat", {})), "h5")
+    assert "ptq_static" in t.steps_reason((StrategySpec("s", "ptq_static", {}),), "keras")
+    assert t.steps_reason((StrategySpec("p", "prune", {}), StrategySpec("c", "cluster", {}),
+                           StrategySpec("q", "qat", {})), "saved_model") is None
+    assert t.probe() is None and "tensorflow-model-optimization" in t.versions()
