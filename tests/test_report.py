@@ -59,7 +59,7 @@ def store_path(tmp_path: Path) -> Path:
     for record in (
         _record(PILOT_BASE, metrics=_metrics(2.0, 4.0, 0.0123)),
         _record(PILOT_ORT, metrics=_metrics(1.0, 2.0, 0.0124)),
-        _record(PILOT_PTQ, metrics={"latency_ms": {"p50": 0.5}}),
+        _record(PILOT_PTQ, metrics={"latency_ms": {"p50": 0.5}, "sparsity": 0.5, "clusters": 16, "finetune_s": 12.0}),
         _record(PILOT_CUDA, "skipped", "no NVIDIA GPU on this machine (no driver: nvidia-smi not found)"),
         _record(PILOT_TS, "failed", TRACEBACK),
         _record(TINY_BASE, metrics=_metrics(0.4, 0.1, 0.05), env=other_env),
@@ -108,11 +108,13 @@ def test_markdown_pages(store_path: Path, tmp_path: Path) -> None:
     assert "Last run: matrix matrix.yaml" in index and "Host**: bench-1 / bench-2" in index
     assert "> - library versions differ between cells: torch (2.4.0, 2.5.0)" in index
     page = (out / "pilotnet.md").read_text()
-    assert "| onnxruntime none fp32 | 2.00 | 1.80 | 2.00× | 0.01240 | +1.00e-04 |" in page  # size ratio 2×
+    # size ratio 2×; not fine-tuned: dashes in the fine-tuning columns this model's table has
+    assert "| onnxruntime none fp32 | 2.00 | 1.80 | 2.00× | — | — | — | 0.01240 | +1.00e-04 |" in page
+    assert "Sparsity" not in (out / "tiny.md").read_text()  # no fine-tuned cell: no such columns
     assert "| 1.00 | 1.50 | 2.00 | 8000 | 250.5 | 2.00× |" in page  # speed-up 2×
     assert "| pytorch none fp32 (baseline) |" in page
     assert "ratio 0.200 (below 1" in page
-    missing = "| onnxruntime ptq_dynamic int8 | — | — | — | — | — | — | — | 0.500 | — | — | — | — | 4.00× |"
+    missing = "| onnxruntime ptq_dynamic int8 | — | — | — | 0.500 | 16 | 12 | — | — | — | — | 0.500 | — | — | — | — | 4.00× |"
     assert missing in page  # missing metrics render as dashes
     table = [line for line in page.split("## Results")[1].split("## Skipped")[0].splitlines() if line.startswith("|")]
     assert len(table) == 5 and len({line.replace("\\|", "").count("|") for line in table}) == 1
@@ -161,6 +163,9 @@ def test_csv_one_flat_row_per_record(store_path: Path, tmp_path: Path) -> None:
         assert column in CSV_COLUMNS
     ort = next(r for r in rows if r["key"] == PILOT_ORT.key)
     assert float(ort["speedup_vs_baseline"]) == 2.0 and float(ort["size_mib"]) == 2.0 and ort["threads"] == "4"
+    tuned = next(r for r in rows if r["key"] == PILOT_PTQ.key)
+    assert (tuned["sparsity"], tuned["clusters"], tuned["finetune_s"]) == ("0.5", "16", "12")
+    assert ort["sparsity"] == ""
     failed = next(r for r in rows if r["key"] == PILOT_TS.key)
     assert failed["status"] == "failed" and failed["reason"] == "RuntimeError: int8 | kernel missing"
     assert failed["latency_p50_ms"] == "" and failed["speedup_vs_baseline"] == ""

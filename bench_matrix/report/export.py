@@ -42,7 +42,8 @@ def csv_row(record: CellRecord, row: Row | None) -> dict[str, Any]:
     out: dict[str, Any] = {"key": record.cell.key, **record.cell.as_dict(), "status": record.status,
                            "reason": headline(record.reason)}
     for name in ("size_bytes", "size_gzip_bytes", "params", "mse", "mae", "max_abs_diff_vs_baseline",
-                 "throughput_sps", "batch_size", "peak_rss_mb", "convert_s", "load_s", "threads"):
+                 "throughput_sps", "batch_size", "peak_rss_mb", "convert_s", "finetune_s", "sparsity", "clusters",
+                 "load_s", "threads"):
         out[name] = _plain(metric(record, name))
     for name in ("size", "size_gzip"):
         size = metric(record, f"{name}_bytes")
