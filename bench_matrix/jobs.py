@@ -83,9 +83,9 @@ def judge_training(keys: list[list[str]]) -> dict[str, dict[str, Any]]:
     for framework, source_format, steps_json in keys:
         steps = tuple(StrategySpec.from_dict(s) for s in json.loads(steps_json))
         kinds = ", ".join(s.kind or "" for s in steps)
-        mine = [t for t in trainers if t.framework == framework]
-        reasons = [f"{t.name}: {r}" for t in mine if (r := t.steps_reason(steps, source_format))]
-        able = [t for t in mine if not t.steps_reason(steps, source_format)]
+        judged = [(t, t.steps_reason(steps, source_format)) for t in trainers if t.framework == framework]
+        reasons = [f"{t.name}: {r}" for t, r in judged if r]
+        able = [t for t, r in judged if not r]
         if not able:
             why = "; ".join(reasons + errors) or f"no installed trainer fine-tunes {framework} models"
             verdicts[json.dumps([framework, source_format, steps_json])] = {"invalid": f"{kinds}: {why}"}
@@ -287,7 +287,9 @@ def _params(ws: Workspace, source: SourceModel) -> int:
         return int(json.loads(kept.read_text()))
     params = _count_params(source)
     kept.parent.mkdir(parents=True, exist_ok=True)
-    kept.write_text(json.dumps(params))
+    partial = kept.with_name(f"{kept.name}.tmp{os.getpid()}")
+    partial.write_text(json.dumps(params))
+    partial.replace(kept)  # a reader never sees a half-written count
     return params
 
 

@@ -20,7 +20,13 @@ from bench_matrix.report.columns import (
     shown,
     sig,
 )
-from bench_matrix.report.summary import Environment, ModelSummary, Report, headline, number
+from bench_matrix.report.summary import (
+    Environment,
+    ModelSummary,
+    Report,
+    headline,
+    number,
+)
 from bench_matrix.store import CellRecord
 
 _COLUMN_NOTES = ("Latency is measured one sample at a time after warm-up runs; p50/p90/p99 are percentiles "

@@ -16,13 +16,13 @@ from bench_matrix.report.columns import (
     SPEED,
     THROUGHPUT,
     Column,
-    shown,
     baseline_note,
     best_text,
     caption,
     model_line,
     mse_line,
     run_line,
+    shown,
 )
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
 from bench_matrix.store import CellRecord
