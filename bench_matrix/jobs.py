@@ -148,9 +148,9 @@ def finetune(job: dict[str, Any]) -> dict[str, Any]:
     ws, settings, dinfo = Workspace(Path(job["workspace"])), job["settings"], job["dataset_info"]
     source, trainer = SourceModel.from_dict(job["source"]), load_trainer(job["trainer"])
     steps = training_steps(job["strategy"])
-    key = digest({"source": source.sha256, "trainer": trainer.name, "versions": trainer.versions(),
-                  "steps": [s.to_dict() for s in steps], "dataset": dinfo["fingerprint"], "layout": job["layout"],
-                  "seed": settings.seed})
+    key = digest({"source": source.sha256, "trainer": trainer.name, "revision": trainer.revision,
+                  "versions": trainer.versions(), "steps": [s.to_dict() for s in steps],
+                  "dataset": dinfo["fingerprint"], "layout": job["layout"], "seed": settings.seed})
     final = ws.root / "cache" / "finetuned" / key
     if not (final / "finetuned.json").is_file():
         phase("finetune")
@@ -226,11 +226,13 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
 
 
 def _finetune_metrics(facts: dict[str, Any] | None, convert_s: float) -> dict[str, Any]:
-    """For a fine-tuned model: convert_s including the fine-tuning, finetune_s, sparsity, clusters, the facts."""
+    """For a fine-tuned model: convert_s including the fine-tuning, finetune_s, sparsity, clusters (when it was
+    clustered: elsewhere the most distinct values per kernel is just its size), the facts."""
     if not facts:
         return {}
+    clusters = facts.get("clusters") if "target_clusters" in facts else None
     return {"convert_s": convert_s + facts["finetune_s"], "finetune_s": facts["finetune_s"],
-            "sparsity": facts.get("sparsity"), "clusters": facts.get("clusters"), "finetune": facts}
+            "sparsity": facts.get("sparsity"), "clusters": clusters, "finetune": facts}
 
 
 def predict_all(session: Session, x: np.ndarray, batch_size: int) -> np.ndarray:

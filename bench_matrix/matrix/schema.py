@@ -30,6 +30,8 @@ _SPARSITY = {
     "scope": {"enum": ["local", "global"], "description": "per-layer (local) or whole-model (global) pruning"},
     "conv_sparsity": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
     "linear_sparsity": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
+    "min_weights": {"type": "integer", "minimum": 0,
+                    "description": "kernels with fewer weights stay dense (tfmot; default 10000)"},
 }
 _CLUSTERS = {
     "clusters": {"type": "integer", "minimum": 2, "description": "distinct values per weight tensor"},

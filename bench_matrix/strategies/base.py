@@ -46,6 +46,7 @@ class Trainer(ABC):
     description: ClassVar[str]
     framework: ClassVar[str]
     kinds: ClassVar[tuple[str, ...]]  # training kinds from STRATEGY_KINDS it implements
+    revision: ClassVar[int] = 1  # raise it when the procedure changes: cached fine-tuned models are then redone
 
     def versions(self) -> dict[str, str]:
         """Versions of the libraries it uses (in the fine-tuned model's cache key and in each record's env)."""

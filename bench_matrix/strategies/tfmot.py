@@ -29,12 +29,15 @@ from bench_matrix.strategies.base import (
     Trainer,
     weight_stats,
 )
+from bench_matrix.strategies.tfmot_ranges import init_activation_ranges, observed_ranges
 
 # Defaults of every option, per kind; a strategy's options override each one. Budgets follow the study
 # (pruning 0.5 -> 0.8 polynomial over 2 epochs; CQAT 8 clusters kmeans++, 3 clustering + 1 QAT epochs;
 # PQAT constant 0.5, 3 prune + 1 QAT epochs; PCQAT 3 + 3 + 1), on a quarter of the training split with a
 # fine-tuning learning rate, so that each strategy costs minutes on 2 CPU cores.
-COMMON_DEFAULTS: dict[str, Any] = {"fraction": 0.25, "lr": 1e-4, "batch_size": 32}
+# Kernels under min_weights weights stay dense when pruning: they save almost no storage and are the most
+# sensitive (halving PilotNet's 10x2 or 50x10 output kernels alone takes its test MSE to the mean predictor's).
+COMMON_DEFAULTS: dict[str, Any] = {"fraction": 0.25, "lr": 1e-4, "batch_size": 32, "min_weights": 10_000}
 DEFAULTS: dict[str, dict[str, Any]] = {
     "prune": {"prune_epochs": 2, "initial_sparsity": 0.5, "final_sparsity": 0.8, "schedule": "polynomial"},
     "cluster": {"cluster_epochs": 3, "clusters": 8, "init": "kmeans++"},
@@ -48,6 +51,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
 PHASES = {"prune": ("prune",), "cluster": ("cluster",), "qat": ("qat",), "pqat": ("prune", "qat"),
           "cqat": ("cluster", "qat"), "pcqat": ("prune", "cluster", "qat")}
 ORDER = ("prune", "cluster", "qat")
+RAMP_SHARE = 2 / 3  # the share of a polynomial prune phase spent raising sparsity
 INITS = {"kmeans++": "KMEANS_PLUS_PLUS", "linear": "LINEAR", "density": "DENSITY_BASED", "random": "RANDOM"}
 KERAS_FORMATS = ("keras", "h5", "saved_model")
 # A tfmot QAT model is saved as a Keras SavedModel directory: .keras cannot restore QuantizeWrapper variables,
@@ -101,12 +105,13 @@ def _is_weighted(layer: Any) -> bool:
         layer, (k.layers.DepthwiseConv2D, k.layers.SeparableConv2D))
 
 
-def _kernels(model: Any) -> list[np.ndarray]:
-    """Conv/Dense kernels of a plain or QAT model (the float kernel variables inside QuantizeWrappers)."""
+def _kernels(model: Any, names: set[str] | None = None) -> list[np.ndarray]:
+    """Conv/Dense kernels of a plain or QAT model (the float kernel variables inside QuantizeWrappers), or only
+    those of the named layers."""
     found = []
     for layer in model.layers:
         inner = getattr(layer, "layer", layer)
-        if not _is_weighted(inner):
+        if not _is_weighted(inner) or (names is not None and inner.name not in names):
             continue
         # A QuantizeWrapper replaces the layer's kernel attribute with a fake-quantised tensor: read the float
         # variable it quantises (its `_weight_vars` hold (variable, quantizer, quantizer variables)).
@@ -153,6 +158,9 @@ class TfmotTrainer(Trainer):
                    "training and the collaborative CQAT/PQAT/PCQAT schemes on Keras 2 models")
     framework = "tensorflow"
     kinds = ("prune", "cluster", "qat", "cqat", "pqat", "pcqat")
+    # 2: the polynomial ramp ends two thirds of the way; kernels below min_weights stay dense; BatchNorm frozen;
+    #    QAT activation ranges start from the data
+    revision = 2
 
     def versions(self) -> dict[str, str]:
         from bench_matrix.measure.env import installed_versions
@@ -245,8 +253,8 @@ class TfmotTrainer(Trainer):
             # Per-channel 8-bit quantisation scales each output channel of a conv kernel on its own, so the
             # float kernels of a CQAT model keep <= clusters values per output channel, not per tensor.
             facts["clusters_per_channel"] = max(len(np.unique(c)) for k_ in kernels for c in np.moveaxis(k_, -1, 0))
-        if pruned:  # sparsity over the kernels tfmot pruned (all Conv/Dense kernels, unless it skipped some)
-            facts["pruned_kernel_sparsity"] = facts["sparsity"]
+        if pruned:  # sparsity over the kernels tfmot pruned (layers below min_weights stay dense)
+            facts["pruned_kernel_sparsity"] = weight_stats(_kernels(model, pruned))["sparsity"]
         out = Path(request.out_dir)
         out.mkdir(parents=True, exist_ok=True)
         if "qat" in done:
@@ -261,10 +269,19 @@ class TfmotTrainer(Trainer):
         from bench_matrix.sources.tensorflow import keras, tensorflow
 
         tf, k = tensorflow(), keras()
+        # Keep the learned normalisation while fine-tuning (a frozen Keras 2 BatchNorm runs in inference mode), and
+        # unfreeze it after: tfmot's prune-preserving QAT registry takes a layer with no trainable weights for one
+        # it quantizes.
+        norms = [layer for layer in model.layers
+                 if isinstance(getattr(layer, "layer", layer), k.layers.BatchNormalization) and layer.trainable]
+        for layer in norms:
+            layer.trainable = False
         model.compile(optimizer=k.optimizers.Adam(lr), loss="mse")
         ds = (tf.data.Dataset.from_tensor_slices((x, y)).shuffle(len(x), seed=seed, reshuffle_each_iteration=True)
               .batch(batch).repeat())
         history = model.fit(ds, epochs=n_epochs, steps_per_epoch=per_epoch, callbacks=list(callbacks), verbose=0)
+        for layer in norms:
+            layer.trainable = True
         return float(history.history["loss"][-1])
 
     def _prune(self, model: Any, kind: str, opts: dict[str, Any], x: np.ndarray, y: np.ndarray, lr: float,
@@ -274,10 +291,10 @@ class TfmotTrainer(Trainer):
         k, tfmot = keras(), _tfmot()
         sp = tfmot.sparsity.keras
         total = n_epochs * per_epoch
-        # Masks are updated every `frequency` steps (about 20 updates in all); the last update is at end_step,
-        # where the polynomial schedule reaches its final sparsity.
+        # Masks are updated every `frequency` steps (about 20 updates in all). The polynomial schedule reaches its
+        # final sparsity at end_step, two thirds of the way, so the last cut has a third of the steps to recover.
         frequency = max(1, total // 20)
-        end_step = max(0, frequency * ((total - 1) // frequency))
+        end_step = frequency * max(0, round(total * RAMP_SHARE) // frequency)
         schedule_name = _option("schedule", kind, opts)
         initial = float(_option("initial_sparsity", kind, opts))
         final = float(_option("final_sparsity", kind, opts))
@@ -289,12 +306,16 @@ class TfmotTrainer(Trainer):
             return sp.PolynomialDecay(min(initial, target), target, begin_step=0, end_step=end_step,
                                       frequency=frequency)
 
-        names = []
+        min_weights = int(_option("min_weights", kind, opts))
+        sizes = {layer.name: int(np.prod(layer.kernel.shape)) for layer in model.layers if _is_weighted(layer)}
+        names = [name for name, size in sizes.items() if size >= min_weights]
+        if not names:
+            raise ValueError(f"prune: no Conv/Dense kernel has min_weights ({min_weights}) weights or more (the "
+                             f"largest has {max(sizes.values(), default=0)}); lower min_weights")
 
         def wrap(layer: Any) -> Any:
-            if not _is_weighted(layer):
+            if layer.name not in names:
                 return layer
-            names.append(layer.name)
             target = targets["linear"] if isinstance(layer, k.layers.Dense) else targets["conv"]
             return sp.prune_low_magnitude(layer, pruning_schedule=schedule(target))
 
@@ -307,7 +328,8 @@ class TfmotTrainer(Trainer):
                 weight.assign(weight * mask)
         stripped = sp.strip_pruning(wrapped)
         extra = {"schedule": schedule_name, "target_sparsity": final, "pruned_layers": names,
-                 "mask_updates_every_steps": frequency}
+                 "dense_layers": {n: size for n, size in sizes.items() if n not in names},
+                 "min_weights": min_weights, "mask_updates_every_steps": frequency}
         if schedule_name == "polynomial":
             extra["initial_sparsity"] = initial
         if "conv_sparsity" in opts or "linear_sparsity" in opts:
@@ -368,8 +390,9 @@ class TfmotTrainer(Trainer):
         _copy_weights(model, annotated)
         with qk.quantize_scope(_qat_custom_objects()):
             quantized = qk.quantize_apply(annotated, scheme)
+        started = init_activation_ranges(quantized, observed_ranges(model, x))
         loss = self._fit(quantized, x, y, lr, batch, n_epochs, per_epoch, seed)
-        extra: dict[str, Any] = {"scheme": scheme_name}
+        extra: dict[str, Any] = {"scheme": scheme_name, "ranges_started_from_data": len(started)}
         if float_layers:
             extra["float_layers"] = float_layers  # tfmot's 8-bit registry does not support them: left float
         return quantized, loss, extra
