@@ -246,7 +246,8 @@ def ensure_artifact(ws: Workspace, backend: Backend, source: SourceModel, strate
     calibrated = any("calibration_samples" in STRATEGY_KINDS[k]["options"] for k in strategy.kinds())
     key = digest({"source": source.sha256, "backend": backend.name, "versions": backend.versions(),
                   "strategy": strategy.to_dict(), "precision": precision, "target": target,
-                  "calibration": [dinfo["fingerprint"], layout] if calibrated else None, "seed": settings.seed})
+                  "calibration": [dinfo["fingerprint"], layout] if calibrated else None, "seed": settings.seed,
+                  **({"max_batch": settings.batch_size} if target == "tensorrt" else {})})
     final = ws.artifact(backend.name, key)
     if (final / "manifest.json").is_file():
         return final, json.loads((final / "manifest.json").read_text()), True
@@ -262,7 +263,7 @@ def ensure_artifact(ws: Workspace, backend: Backend, source: SourceModel, strate
     shared.mkdir(parents=True, exist_ok=True)
     request = ConvertRequest(source=source, strategy=strategy, precision=precision, target=target,
                              out_dir=tmp / "model", calibration=calibration, threads=settings.threads,
-                             seed=settings.seed, shared_dir=shared)
+                             seed=settings.seed, shared_dir=shared, max_batch=settings.batch_size)
     begin = time.perf_counter()
     try:
         meta = backend.convert(request)

@@ -43,6 +43,8 @@ class ConvertRequest:
     # Files derived from this source alone (e.g. its fp32 export), reusable by every conversion of it with this
     # backend and these library versions; None: nothing is shared.
     shared_dir: Path | None = None
+    # The largest batch the cell runs (latency runs batch 1): ahead-of-time engines (TensorRT) cover 1..max_batch.
+    max_batch: int = 1
 
 
 class Session(ABC):

@@ -6,7 +6,7 @@ import json
 from typing import Any
 
 FRAMEWORKS = ("pytorch", "tensorflow", "onnx")
-PRECISIONS = ("fp32", "fp16", "int8")
+PRECISIONS = ("fp32", "fp16", "bf16", "int8")
 TARGETS = ("cpu", "cuda", "tensorrt")
 BUILTIN_MODELS = ("pilotnet", "pilotnet_jderobot")
 BUILTIN_FRAMEWORKS = ("pytorch", "tensorflow")  # each built-in model exists in both
