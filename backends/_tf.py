@@ -19,20 +19,24 @@ def probe_tensorflow_gpu() -> str | None:
     from bench_matrix.sources.tensorflow import tensorflow
 
     tf = tensorflow()
+    build = tf.sysconfig.get_build_info()
     if not tf.test.is_built_with_cuda():
         reasons.append(f"this TensorFlow {tf.__version__} is a CPU-only build (tf.test.is_built_with_cuda() is "
                        f"False); install a CUDA build, e.g. tensorflow[and-cuda] on Linux")
+    elif mismatch := hardware.cuda_mismatch_reason(f"TensorFlow {tf.__version__}", build.get("cuda_version")):
+        reasons.append(mismatch)
     elif not reasons and not tf.config.list_physical_devices("GPU"):
-        build = tf.sysconfig.get_build_info()
         reasons.append(f"TensorFlow {tf.__version__} (built for CUDA {build.get('cuda_version')}, cuDNN "
                        f"{build.get('cudnn_version')}) sees no GPU: tf.config.list_physical_devices('GPU') is "
                        f"empty (driver too old, or CUDA libraries missing?)")
     return "; ".join(reasons) or None
 
 
-def probe_tftrt() -> str | None:
-    """Why TF-TRT cannot run here: no GPU, no CUDA build, or a TensorFlow that is not a TensorRT build."""
+def probe_tftrt(precision: str = "fp32") -> str | None:
+    """Why TF-TRT cannot run `precision` here: no GPU, no CUDA build, not a TensorRT build, a GPU too old."""
     reasons = [reason] if (reason := probe_tensorflow_gpu()) else []
+    if too_old := hardware.precision_reason(precision, f"TF-TRT {precision.upper()}"):
+        reasons.append(too_old)
     from bench_matrix.sources.tensorflow import tensorflow
 
     tf = tensorflow()

@@ -46,7 +46,7 @@ class TFTRTBackend(Backend):
         return tf_versions("tensorrt")
 
     def probe(self, target: str, precision: str) -> str | None:
-        return probe_tftrt()
+        return probe_tftrt(precision)
 
     def option_reason(self, step: StrategySpec, source_format: str) -> str | None:
         """INT8 takes float input and output, and calibrates with TensorRT's entropy calibrator only (also when

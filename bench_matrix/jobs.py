@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import resource
@@ -13,13 +14,14 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix import data
+from bench_matrix import data, hardware
 from bench_matrix.backends.base import Backend, ConvertRequest, Session
 from bench_matrix.backends.registry import BackendLoadError, load_backend
 from bench_matrix.errors import UserError
 from bench_matrix.matrix.schema import STRATEGY_KINDS
 from bench_matrix.matrix.spec import ModelSpec, StrategySpec
 from bench_matrix.measure import env as environment
+from bench_matrix.measure.gpu import GpuMemory
 from bench_matrix.measure.size import artifact_size
 from bench_matrix.measure.stats import accuracy, latency_summary
 from bench_matrix.measure.timing import LoopSettings, steady_time_calls, throughput
@@ -29,6 +31,7 @@ from bench_matrix.workspace import Workspace, digest, file_sha256
 
 NONE = StrategySpec(name="none", kind="none")
 LATENCY_INPUTS = 16
+GPU_TARGETS = ("cuda", "tensorrt")  # timed compute-only and end to end; GPU name and memory recorded
 _DEFAULT_FORMAT = {"pytorch": "state_dict", "tensorflow": "keras"}  # what built-in models arrive as
 
 
@@ -199,6 +202,8 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
     ddir, artifact, manifest = Path(job["dataset_dir"]), Path(job["artifact_dir"]), job["manifest"]
     backend = load_backend(cell.backend)
     x_few, _ = data.load_split(ddir, "test", pre, layout, max(LATENCY_INPUTS, settings.batch_size))
+    on_gpu = cell.target in GPU_TARGETS
+    gpu_memory = GpuMemory() if on_gpu else None  # before the load: the fallback reading subtracts this
     phase("load")
     begin = time.perf_counter()
     session = backend.load(artifact / "model", manifest["meta"], cell.target, cell.precision, settings.threads)
@@ -209,14 +214,21 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
                         settings.min_time_s, settings.max_time_s)
     phase("measure")
     durations, stability = steady_time_calls(session.execute, singles, loop)
+    gpu: dict[str, Any] = {}
+    if on_gpu:  # end to end: from host arrays, both copies and fetch inside the clock
+        hosts = [x_few[i:i + 1] for i in range(len(singles))]
+        gpu["latency_ms_e2e"] = latency_summary(steady_time_calls(session.predict, hosts, loop)[0])
     rate = throughput(session.execute, batch, settings.batch_size, settings.throughput_time_s)
     peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     phase("evaluate")
     x, y = data.load_split(ddir, "test", pre, layout, settings.eval_samples)
     pred = predict_all(session, x, settings.batch_size)
+    if gpu_memory is not None:
+        gpu.update(gpu_name=hardware.gpus()[0].name if hardware.gpus() else None, **gpu_memory.peak())
     reference = np.load(job["reference"]) if job.get("reference") else None
     metrics = {**artifact_size(artifact / "model"), "params": manifest["params"],
-               **accuracy(pred, y, reference), "latency_ms": latency_summary(durations), **stability, **rate,
+               **accuracy(pred, y, reference), "outputs_sha256": outputs_digest(pred),
+               "latency_ms": latency_summary(durations), **gpu, **stability, **rate,
                "batch_size": settings.batch_size, "peak_rss_mb": round(peak_rss_mb, 1),
                "convert_s": manifest["convert_s"], "load_s": load_s, "threads": settings.threads,
                "artifact_cached": job["cached"], "session": session.info(), "test_samples": int(len(y)),
@@ -233,6 +245,11 @@ def _finetune_metrics(facts: dict[str, Any] | None, convert_s: float) -> dict[st
     clusters = facts.get("clusters") if "target_clusters" in facts else None
     return {"convert_s": convert_s + facts["finetune_s"], "finetune_s": facts["finetune_s"],
             "sparsity": facts.get("sparsity"), "clusters": clusters, "finetune": facts}
+
+
+def outputs_digest(pred: np.ndarray) -> str:
+    """SHA-256 of the predictions as contiguous float32: equal only for bit-identical outputs."""
+    return hashlib.sha256(np.ascontiguousarray(pred, dtype=np.float32).tobytes()).hexdigest()
 
 
 def predict_all(session: Session, x: np.ndarray, batch_size: int) -> np.ndarray:

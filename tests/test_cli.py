@@ -63,6 +63,9 @@ def test_run_small_matrix_and_report(tiny_project):
         assert m["size_bytes"] > 0 and m["throughput_sps"] > 0 and m["peak_rss_mb"] > 0 and m["threads"] == 1
         assert m["test_samples"] == 24
         assert m["mse"] == pytest.approx(baseline["mse"], rel=0.5, abs=0.05)
+        assert len(m["outputs_sha256"]) == 64 and "latency_ms_e2e" not in m and "gpu_name" not in m  # CPU cell
+    digests = {key: r["metrics"]["outputs_sha256"] for key, r in found.items() if r["status"] == "ok"}
+    assert digests["pytorch/none/fp32/cpu"] != digests["torchscript/ptq_static/int8/cpu"]  # int8 changes outputs
     assert found["onnxruntime/none/fp32/cpu"]["metrics"]["max_abs_diff_vs_baseline"] < 1e-4
     assert found["onnxruntime/none/fp32/cpu"]["metrics"]["session"]["providers"] == ["CPUExecutionProvider"]
 

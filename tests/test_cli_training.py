@@ -14,8 +14,9 @@ pytestmark = pytest.mark.slow
 
 TORCH_STRATEGIES = (
     "strategies:\n"
-    "  prune_local: {kind: prune, scope: local, conv_sparsity: 0.3, linear_sparsity: 0.5, epochs: 1, fraction: 0.5}\n"
-    "  prune_global: {kind: prune, scope: global, final_sparsity: 0.4, epochs: 1, fraction: 0.5}\n"
+    "  prune_local: {kind: prune, scope: local, conv_sparsity: 0.3, linear_sparsity: 0.5, epochs: 1, fraction: 0.5,"
+    " min_weights: 0}\n"
+    "  prune_global: {kind: prune, scope: global, final_sparsity: 0.4, epochs: 1, fraction: 0.5, min_weights: 0}\n"
     "  qat: {kind: qat, epochs: 1, fraction: 0.5}\n"
     "  prune_dynamic: {steps: [prune_local, ptq_dynamic]}\n")
 

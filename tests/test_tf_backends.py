@@ -187,6 +187,23 @@ def test_tftrt_probe_gives_the_precise_reason(precision: str) -> None:
     assert got == TFTRT_MISSING
 
 
+def test_tftrt_probe_names_a_gpu_too_old_for_the_precision(monkeypatch: pytest.MonkeyPatch) -> None:
+    old = hardware.Gpu("Tesla K80", "470.82.01", 11441, (3, 7))
+    monkeypatch.setattr(hardware, "gpus", lambda: (old,))
+    int8 = BACKENDS["tftrt"].probe("tensorrt", "int8")
+    assert int8 and "Tesla K80 has compute capability 3.7; TF-TRT INT8 needs 6.1 or newer" in int8
+    assert "compute capability" not in (BACKENDS["tftrt"].probe("tensorrt", "fp32") or "")
+
+
+def test_tensorflow_probe_names_a_driver_too_old_for_its_cuda(monkeypatch: pytest.MonkeyPatch) -> None:
+    tf = tensorflow()
+    if not tf.test.is_built_with_cuda():
+        pytest.skip(f"TensorFlow {tf.__version__} here is a CPU-only build: it has no CUDA version to compare")
+    monkeypatch.setattr(hardware, "driver_cuda_version", lambda: (1, 0))
+    got = BACKENDS["tensorflow"].probe("cuda", "fp32")
+    assert got and "but the NVIDIA driver supports CUDA up to 1.0" in got
+
+
 def test_tftrt_declares_tensorrt_only() -> None:
     backend = BACKENDS["tftrt"]
     for combo in (("none", "fp32"), ("none", "fp16"), ("ptq_static", "int8")):

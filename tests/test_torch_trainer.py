@@ -59,7 +59,8 @@ def finetune(source: SourceModel, out: Path, *steps: StrategySpec, x: np.ndarray
 
 
 def prune(name: str = "prune", **options) -> StrategySpec:
-    return StrategySpec(name, "prune", {"epochs": 1, "fraction": 1.0, **options})
+    """A prune step on the tiny model, whose kernels (216 to 1152 weights) are all below the default min_weights."""
+    return StrategySpec(name, "prune", {"epochs": 1, "fraction": 1.0, "min_weights": 0, **options})
 
 
 def qat(**options) -> StrategySpec:
@@ -98,6 +99,28 @@ def test_local_prune_hits_per_layer_targets_and_leaves_the_source_alone(tmp_path
     moved = [not torch.equal(a, b) for a, b in zip(original.state_dict().values(), module.state_dict().values())]
     assert any(moved)
     assert torch.isfinite(module(torch.from_numpy(data(4)[0]))).all()
+
+
+@pytest.mark.parametrize("scope", ["local", "global"])
+def test_kernels_below_min_weights_stay_dense(tmp_path, scope):
+    source = make_source(tmp_path / "tiny.pt")
+    options = {"final_sparsity": 0.5} if scope == "global" else {}
+    result = finetune(source, tmp_path / "out", prune(scope=scope, min_weights=500, **options))
+    layers = layer_zeros(load_state(tmp_path / "out" / result.file))
+    # kernels: conv 216 and 576, linear 1152 and 32 weights; the 216 and the 32 stay dense
+    assert [z for _, z, n in layers if n < 500] == [0, 0]
+    pruned = [(z, n) for _, z, n in layers if n >= 500]
+    assert len(pruned) == 2 and all(z > 0 for z, _ in pruned)
+    facts = result.facts
+    assert facts["targets"]["dense_layers"] == {"1": 216, "8": 32} and facts["targets"]["min_weights"] == 500
+    assert facts["pruned_kernel_sparsity"] == pytest.approx(sum(z for z, _ in pruned) / sum(n for _, n in pruned))
+    assert facts["sparsity"] < facts["pruned_kernel_sparsity"]  # over every kernel: the dense ones count too
+
+
+def test_prune_with_no_kernel_of_min_weights_says_so(tmp_path):
+    source = make_source(tmp_path / "tiny.pt")
+    with pytest.raises(ValueError, match=r"no Conv/Linear weight has min_weights \(5000\).*largest has 1152"):
+        finetune(source, tmp_path / "out", prune(min_weights=5000))
 
 
 def test_global_prune_ranks_all_layers_together(tmp_path):

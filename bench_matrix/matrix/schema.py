@@ -31,7 +31,7 @@ _SPARSITY = {
     "conv_sparsity": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
     "linear_sparsity": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
     "min_weights": {"type": "integer", "minimum": 0,
-                    "description": "kernels with fewer weights stay dense (tfmot; default 10000)"},
+                    "description": "kernels with fewer weights stay dense (default 10000)"},
 }
 _CLUSTERS = {
     "clusters": {"type": "integer", "minimum": 2, "description": "distinct values per weight tensor"},

@@ -106,12 +106,18 @@ COLUMNS: tuple[Column, ...] = (
                        "\"~\" marks a cell whose timing drifted by more than 5 % between parts of the run in "
                        "every attempt (something else used the machine): treat it as approximate.",
            _p50, SPEED),
+    Column("e2e p50\nms", "GPU cells: median latency at batch 1 including the host-to-device copy of the input "
+           "and the copy of the outputs back (p50 ms counts the computation only, input already on the device).",
+           lambda r: sig(metric(r.record, "latency_ms_e2e", "p50"), 3), SPEED, optional=True),
     Column("p90\nms", "90th-percentile latency at batch 1, in milliseconds.", _latency("p90"), SPEED),
     Column("p99\nms", "99th-percentile latency at batch 1, in milliseconds.", _latency("p99"), SPEED),
     Column("Throughput\nsamples/s", "samples per second at the batch size given above the table.",
            lambda r: sig(metric(r.record, "throughput_sps"), 3), THROUGHPUT),
     Column("Peak RSS\nMiB", "peak resident memory of the process that measured the cell, in MiB.",
            lambda r: fixed(metric(r.record, "peak_rss_mb"), 1), THROUGHPUT),
+    Column("GPU\nMiB", "GPU cells: GPU memory the measuring process held after its runs, in MiB (see "
+           "docs/metrics.md for how it is read).", lambda r: fixed(metric(r.record, "peak_gpu_mem_mb"), 0),
+           THROUGHPUT, optional=True),
     Column("Speed-up", "baseline p50 ÷ cell p50: above 1× the cell is faster than the baseline.",
            lambda r: times(r.speedup), SPEED),
     Column("vs own\nfp32", "the same backend's fp32 cell (strategy none, same target) p50 ÷ cell p50: what the "

@@ -15,8 +15,8 @@ CELL_COLUMNS = ("key", "model", "framework", "backend", "strategy", "precision",
 LATENCY_STATS = ("mean", "p50", "p90", "p99", "std", "min")
 CSV_COLUMNS = (*CELL_COLUMNS, "status", "reason", "size_bytes", "size_mib", "size_gzip_bytes", "size_gzip_mib",
                "params", "mse", "mae", "max_abs_diff_vs_baseline", *(f"latency_{s}_ms" for s in LATENCY_STATS),
-               "latency_n", "throughput_sps", "batch_size", "peak_rss_mb", "convert_s", "finetune_s", "sparsity",
-               "clusters", "load_s", "threads",
+               "latency_n", "latency_e2e_p50_ms", "throughput_sps", "batch_size", "peak_rss_mb", "peak_gpu_mem_mb",
+               "gpu_name", "convert_s", "finetune_s", "sparsity", "clusters", "load_s", "threads", "outputs_sha256",
                "artifact_cached", "speedup_vs_baseline", "size_ratio_vs_baseline", "mse_delta_vs_baseline")
 
 
@@ -42,9 +42,13 @@ def csv_row(record: CellRecord, row: Row | None) -> dict[str, Any]:
     out: dict[str, Any] = {"key": record.cell.key, **record.cell.as_dict(), "status": record.status,
                            "reason": headline(record.reason)}
     for name in ("size_bytes", "size_gzip_bytes", "params", "mse", "mae", "max_abs_diff_vs_baseline",
-                 "throughput_sps", "batch_size", "peak_rss_mb", "convert_s", "finetune_s", "sparsity", "clusters",
-                 "load_s", "threads"):
+                 "throughput_sps", "batch_size", "peak_rss_mb", "peak_gpu_mem_mb", "convert_s", "finetune_s",
+                 "sparsity", "clusters", "load_s", "threads"):
         out[name] = _plain(metric(record, name))
+    for name in ("gpu_name", "outputs_sha256"):
+        value = record.metrics.get(name)
+        out[name] = value if isinstance(value, str) else ""
+    out["latency_e2e_p50_ms"] = _plain(metric(record, "latency_ms_e2e", "p50"))
     for name in ("size", "size_gzip"):
         size = metric(record, f"{name}_bytes")
         out[f"{name}_mib"] = "" if size is None else round(size / MIB, 6)

@@ -78,6 +78,7 @@ def model_page(model: ModelSummary) -> str:
     note = baseline_note(model)
     if note:
         lines += [f"> **Note:** {note}", ""]
+    lines += [line for suspect in model.suspects for line in (f"> **Suspect:** {_escape_text(suspect)}", "")]
     lines += ["## Results", ""]
     if model.rows:
         columns = shown(COLUMNS, model.rows)

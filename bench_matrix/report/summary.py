@@ -50,6 +50,7 @@ class ModelSummary:
     skipped: tuple[CellRecord, ...]
     failed: tuple[CellRecord, ...]
     environment: Environment
+    suspects: tuple[str, ...] = ()  # cells at different precisions whose test outputs are bit-identical
 
     @property
     def best(self) -> Row | None:
@@ -126,7 +127,26 @@ def _model(name: str, records: list[CellRecord], info: dict[str, Any]) -> ModelS
     by_key = sorted(records, key=lambda r: r.cell.key)
     return ModelSummary(name=name, framework=framework, info=info, baseline_key=baseline_key, baseline=baseline,
                         rows=rows, skipped=tuple(r for r in by_key if r.status == "skipped"),
-                        failed=tuple(r for r in by_key if r.status == "failed"), environment=environment(records))
+                        failed=tuple(r for r in by_key if r.status == "failed"), environment=environment(records),
+                        suspects=suspects(ok))
+
+
+def suspects(records: Iterable[CellRecord]) -> tuple[str, ...]:
+    """One line per group of cells whose test outputs are bit-identical (same `outputs_sha256`) although their
+    precisions differ: a lower precision that changes no output bit was most likely never applied."""
+    groups: dict[str, list[CellRecord]] = {}
+    for record in records:
+        digest = record.metrics.get("outputs_sha256")
+        if isinstance(digest, str):
+            groups.setdefault(digest, []).append(record)
+    lines = []
+    for same in groups.values():
+        precisions = sorted({r.cell.precision for r in same})
+        if len(precisions) > 1:
+            cells = ", ".join(sorted(r.cell.key for r in same))
+            lines.append(f"outputs are bit-identical at {' and '.join(precisions)} ({cells}): the lower "
+                         f"precision was most likely not applied; treat these cells as suspect")
+    return tuple(sorted(lines))
 
 
 def _row(record: CellRecord, reference: CellRecord | None, own_fp32: CellRecord | None) -> Row:

@@ -60,6 +60,8 @@ def _print_model(model: ModelSummary, console: Console) -> None:
     note = baseline_note(model)
     if note:
         console.print(Text(note, style="yellow"))
+    for suspect in model.suspects:
+        console.print(Text(f"Suspect: {suspect}", style="bold red"))
     if model.rows:
         console.print(*results_tables(model, console))
     if model.skipped:

@@ -32,13 +32,15 @@ FILE = "model.pt"
 # epoch, seconds to tens of seconds an epoch on 2 cores (QAT's fake quantisation roughly doubles that).
 TRAINING_DEFAULTS: dict[str, Any] = {"epochs": 2, "fraction": 0.25, "lr": 1e-4, "batch_size": 32}
 # The reference study: per-layer L1 pruning of conv 0.3 / linear 0.5, or global L1 pruning of 0.3, at once.
+# Kernels under min_weights weights stay dense (as in tfmot): they hold almost no storage and are the most sensitive.
 PRUNE_DEFAULTS: dict[str, Any] = {"scope": "local", "schedule": "constant", "conv_sparsity": 0.3,
-                                  "linear_sparsity": 0.5, "global_sparsity": 0.3, "initial_sparsity": 0.0}
+                                  "linear_sparsity": 0.5, "global_sparsity": 0.3, "initial_sparsity": 0.0,
+                                  "min_weights": 10_000}
 POLYNOMIAL_POWER = 3  # the sparsity ramp s_k = final + (initial - final) * (1 - k / K) ** 3, as tfmot's
 
 _TRAINING_OPTIONS = ("epochs", "fraction", "lr", "batch_size")
 _OPTIONS = {"prune": _TRAINING_OPTIONS + ("initial_sparsity", "final_sparsity", "schedule", "scope",
-                                          "conv_sparsity", "linear_sparsity"),
+                                          "conv_sparsity", "linear_sparsity", "min_weights"),
             "qat": _TRAINING_OPTIONS}
 _COMBINATIONS = (("prune",), ("qat",), ("prune", "qat"))
 
@@ -81,6 +83,7 @@ class TorchTrainer(Trainer):
                    "to int8 TorchScript; prune then qat combines them, sparsity kept through QAT")
     framework = "pytorch"
     kinds = ("prune", "qat")
+    revision = 2  # 2: kernels below min_weights stay dense when pruning
 
     def versions(self) -> dict[str, str]:
         return installed_versions("torch")
@@ -132,6 +135,9 @@ class TorchTrainer(Trainer):
                 module, step_facts, kernels = _qat(module, step.options, x, y, generator, masks, request)
             facts["targets"].update(step_facts.pop("targets"))
             facts["steps"].append({"kind": step.kind, **step_facts})
+        pruned = [s["pruned_kernel_sparsity"] for s in facts["steps"] if "pruned_kernel_sparsity" in s]
+        if pruned:  # over the pruned kernels only (those below min_weights stay dense)
+            facts["pruned_kernel_sparsity"] = pruned[0]
         last = facts["steps"][-1]
         facts.update(epochs=sum(s["epochs"] for s in facts["steps"]), samples=last["samples"],
                      final_loss=last["final_loss"])
@@ -216,9 +222,15 @@ def _prune(module: nn.Module, options: dict[str, Any], x: np.ndarray, y: np.ndar
     from torch import nn
     from torch.nn.utils import prune
 
-    layers = _prunable(module)
-    if not layers:
+    every = {name: m for name, m in module.named_modules() if m in _prunable(module)}
+    if not every:
         raise ValueError("prune: the model has no Conv or Linear layer to prune")
+    min_weights = int(options.get("min_weights", PRUNE_DEFAULTS["min_weights"]))
+    layers = [m for m in every.values() if m.weight.numel() >= min_weights]
+    if not layers:
+        largest = max(m.weight.numel() for m in every.values())
+        raise ValueError(f"prune: no Conv/Linear weight has min_weights ({min_weights}) weights or more (the "
+                         f"largest has {largest}); lower min_weights")
     scope = options.get("scope", PRUNE_DEFAULTS["scope"])
     schedule = options.get("schedule", PRUNE_DEFAULTS["schedule"])
     initial = float(options.get("initial_sparsity", PRUNE_DEFAULTS["initial_sparsity"]))
@@ -232,7 +244,8 @@ def _prune(module: nn.Module, options: dict[str, Any], x: np.ndarray, y: np.ndar
                        "conv_sparsity", PRUNE_DEFAULTS["conv_sparsity"])),
                    "linear_sparsity": float(final if final is not None else options.get(
                        "linear_sparsity", PRUNE_DEFAULTS["linear_sparsity"]))}
-    targets.update(method="l1_unstructured", schedule=schedule)
+    targets.update(method="l1_unstructured", schedule=schedule, min_weights=min_weights,
+                   dense_layers={n: m.weight.numel() for n, m in every.items() if m not in layers})
     if schedule == "polynomial":
         targets["initial_sparsity"] = initial
 
@@ -264,7 +277,8 @@ def _prune(module: nn.Module, options: dict[str, Any], x: np.ndarray, y: np.ndar
         prune.remove(layer, "weight")
     masks = {name: p.detach() != 0 for name, p in module.named_parameters()
              if any(p is layer.weight for layer in layers)}
-    return module, {**facts, "targets": targets}, masks
+    pruned_sparsity = weight_stats([_numpy(layer.weight) for layer in layers])["sparsity"]
+    return module, {**facts, "targets": targets, "pruned_kernel_sparsity": pruned_sparsity}, masks
 
 
 def _qat(module: nn.Module, options: dict[str, Any], x: np.ndarray, y: np.ndarray,
