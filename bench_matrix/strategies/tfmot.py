@@ -106,17 +106,19 @@ def _is_weighted(layer: Any) -> bool:
 
 
 def _kernels(model: Any, names: set[str] | None = None) -> list[np.ndarray]:
-    """Conv/Dense kernels of a plain or QAT model (the float kernel variables inside QuantizeWrappers), or only
-    those of the named layers."""
+    """Conv/Dense kernels of a plain or QAT model, or only those of the named layers. A QAT model's kernels are
+    read as the converter stores them: fake-quantised to int8 with the learned ranges (dequantised), so a PCQAT
+    centroid that rounds to 0 counts as the zero it becomes."""
     found = []
     for layer in model.layers:
         inner = getattr(layer, "layer", layer)
         if not _is_weighted(inner) or (names is not None and inner.name not in names):
             continue
-        # A QuantizeWrapper replaces the layer's kernel attribute with a fake-quantised tensor: read the float
-        # variable it quantises (its `_weight_vars` hold (variable, quantizer, quantizer variables)).
-        weight_vars = [v for v, *_ in getattr(layer, "_weight_vars", ()) if "kernel" in v.name]
-        found.append(np.asarray((weight_vars[0] if weight_vars else inner.kernel).numpy()))
+        # A QuantizeWrapper's `_weight_vars` hold (variable, quantizer, quantizer variables); in inference mode
+        # the quantizer applies the ranges the converter uses.
+        quantized = [quantizer(var, training=False, weights=qvars)
+                     for var, quantizer, qvars in getattr(layer, "_weight_vars", ()) if "kernel" in var.name]
+        found.append(np.asarray(quantized[0] if quantized else inner.kernel.numpy()))
     return found
 
 
@@ -159,8 +161,9 @@ class TfmotTrainer(Trainer):
     framework = "tensorflow"
     kinds = ("prune", "cluster", "qat", "cqat", "pqat", "pcqat")
     # 2: the polynomial ramp ends two thirds of the way; kernels below min_weights stay dense; BatchNorm frozen;
-    #    QAT activation ranges start from the data
-    revision = 2
+    #    QAT activation ranges start from the data. 3: a QAT model's sparsity and clusters are read from its
+    #    fake-quantised kernels
+    revision = 3
 
     def versions(self) -> dict[str, str]:
         from bench_matrix.measure.env import installed_versions
