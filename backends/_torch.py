@@ -1,4 +1,4 @@
-"""What the two PyTorch backends share: versions, GPU probe, thread pinning, quantised engine, the session."""
+"""What the PyTorch backends share: versions, GPU probe, thread pinning, quantised engine, dtypes, the session."""
 
 from __future__ import annotations
 
@@ -17,25 +17,40 @@ from bench_matrix.measure.env import installed_versions
 if TYPE_CHECKING:
     import torch
 
+# The dtype a module computes in at each precision; int8 models take and return float32.
+DTYPES = {"fp32": "float32", "fp16": "float16", "bf16": "bfloat16", "int8": "float32"}
+
 
 def torch_versions() -> dict[str, str]:
     return installed_versions("torch")
 
 
-def probe_torch(target: str) -> str | None:
-    """Why torch cannot run on `target` here (every missing piece), or None."""
-    if target == "cpu":
-        return None
+def torch_dtype(precision: str) -> "torch.dtype":
+    """The torch dtype of a module's parameters and inputs at `precision`."""
+    import torch
+
+    return getattr(torch, DTYPES[precision])
+
+
+def cuda_reasons(precision: str, what: str | None = None) -> list[str]:
+    """Why torch cannot run `precision` on an NVIDIA GPU here: every missing piece, each with its fix."""
     reasons = [reason] if (reason := hardware.no_gpu_reason()) else []
     import torch
 
     if torch.version.cuda is None:
         reasons.append(f"torch {torch.__version__} is a CPU-only build (install a CUDA build of torch)")
+    elif mismatch := hardware.cuda_mismatch_reason("torch", torch.version.cuda):
+        reasons.append(mismatch)
     elif not reasons and not torch.cuda.is_available():
-        reasons.append(f"torch {torch.__version__} (CUDA {torch.version.cuda}) cannot use the GPU: "
-                       f"torch.cuda.is_available() is False (is the NVIDIA driver too old for CUDA "
-                       f"{torch.version.cuda}?)")
-    return "; ".join(reasons) or None
+        reasons.append(f"torch {torch.__version__} (CUDA {torch.version.cuda}) cannot use the GPU that nvidia-smi "
+                       f"lists: torch.cuda.is_available() is False (check CUDA_VISIBLE_DEVICES and the GPU's "
+                       f"compute mode)")
+    if too_old := hardware.precision_reason(precision, what):
+        reasons.append(too_old)
+    elif precision == "bf16" and not reasons and not torch.cuda.is_bf16_supported(including_emulation=False):
+        reasons.append(f"{torch.cuda.get_device_name()} has no native bf16 (torch.cuda.is_bf16_supported("
+                       f"including_emulation=False) is False); bf16 needs compute capability 8.0 or newer")
+    return reasons
 
 
 def pin_threads(threads: int) -> None:
@@ -48,6 +63,18 @@ def pin_threads(threads: int) -> None:
         # and the session's info() records the value in force.
         with suppress(RuntimeError):
             torch.set_num_interop_threads(1)
+
+
+def exact_fp32() -> None:
+    """Switch TensorFloat-32 off for cuBLAS matmuls and cuDNN convolutions: fp32 on a GPU means IEEE fp32."""
+    import torch
+
+    if hasattr(torch.backends.cudnn, "conv"):  # torch 2.9+; the allow_tf32 flags are deprecated there
+        torch.backends.cuda.matmul.fp32_precision = "ieee"
+        torch.backends.cudnn.conv.fp32_precision = "ieee"
+    else:
+        torch.backends.cuda.matmul.allow_tf32 = False
+        torch.backends.cudnn.allow_tf32 = False
 
 
 def use_engine(engine: str | None = None) -> str:
@@ -79,25 +106,32 @@ def quiet_torch(captured: bool = False) -> Iterator[None]:
 
 
 def place(module: "torch.nn.Module", target: str, precision: str) -> "torch.nn.Module":
-    """The module on the target's device, in half precision for fp16."""
-    if target == "cuda":
+    """The module on the target's device (a GPU for cuda and tensorrt), in the precision's dtype."""
+    import torch
+
+    if target != "cpu":
         module = module.to("cuda")
-    return module.half() if precision == "fp16" else module
+    dtype = torch_dtype(precision)
+    return module if dtype == torch.float32 else module.to(dtype)
 
 
 class TorchSession(Session):
-    """A torch module (eager or TorchScript) run under inference_mode on the CPU or one CUDA GPU."""
+    """A torch module (eager, TorchScript or Torch-TensorRT) run under inference_mode on the CPU or one GPU."""
 
-    def __init__(self, module: "torch.nn.Module", target: str, precision: str):
+    def __init__(self, module: "torch.nn.Module", target: str, precision: str, facts: dict[str, Any] | None = None):
         import torch
 
         self._torch = torch
         self._module = module
-        self._device = torch.device("cuda" if target == "cuda" else "cpu")
-        self._dtype = torch.float16 if precision == "fp16" else torch.float32
-        self._sync = target == "cuda"
+        self._device = torch.device("cpu" if target == "cpu" else "cuda")
+        self._dtype = torch_dtype(precision)
+        self._sync = target != "cpu"
+        self._facts = facts or {}
+        if self._sync:
+            exact_fp32()
 
     def prepare(self, x: np.ndarray) -> "torch.Tensor":
+        """The batch on the device in the module's dtype: copied to the GPU here, outside the timed call."""
         tensor = self._torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))
         return tensor.to(self._device, self._dtype)
 
@@ -109,12 +143,16 @@ class TorchSession(Session):
         return out
 
     def fetch(self, outputs: Any) -> np.ndarray:
+        """The first output as a float32 host array (copied back from the GPU)."""
         out = outputs[0] if isinstance(outputs, (tuple, list)) else outputs
         return out.float().cpu().numpy()
 
     def info(self) -> dict[str, Any]:
-        return {"device": str(self._device), "threads": self._torch.get_num_threads(),
-                "interop_threads": self._torch.get_num_interop_threads()}
+        info = {"device": str(self._device), "threads": self._torch.get_num_threads(),
+                "interop_threads": self._torch.get_num_interop_threads(), **self._facts}
+        if self._sync:
+            info.update(dtype=str(self._dtype).removeprefix("torch."), tensor_float_32=False)
+        return info
 
 
 class TorchBackend(Backend):
@@ -124,4 +162,4 @@ class TorchBackend(Backend):
         return torch_versions()
 
     def probe(self, target: str, precision: str) -> str | None:
-        return probe_torch(target)
+        return None if target == "cpu" else "; ".join(cuda_reasons(precision)) or None

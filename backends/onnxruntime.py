@@ -1,4 +1,5 @@
-"""ONNX Runtime on the CPU, CUDA or TensorRT, with fp16 conversion and int8 (QDQ) quantisation."""
+"""ONNX Runtime on the CPU, CUDA or TensorRT, with fp16 conversion and int8 quantisation: QDQ on the CPU, a
+calibration table for TensorRT, whose engines are built at conversion and kept in the artifact."""
 
 from __future__ import annotations
 
@@ -10,25 +11,25 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bench_matrix import hardware
 from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
-from bench_matrix.matrix.expand import conversion_step
+from bench_matrix.matrix.expand import QAT_KINDS, backend_kind
 from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.measure.env import installed_versions
 
 from ._common import CALIBRATION_BATCH, batches, calibration_data, static_options_reason
+from ._ort_gpu import CACHE_DIR, CALIBRATION_TABLE, DISTRIBUTIONS, DeviceSession, EngineSpec, build_engines, \
+    open_session, probe_reasons, write_calibration_table
 from ._torch import quiet_torch
 
 if TYPE_CHECKING:
     import onnx
     import onnxruntime
+    from onnxruntime.quantization import CalibrationDataReader
 
 FILE = "model.onnx"
 OPSET = 17
-PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider",
-             "tensorrt": "TensorrtExecutionProvider"}
-# Every distribution that installs the `onnxruntime` module; whichever is installed is the one reported.
-DISTRIBUTIONS = ("onnxruntime", "onnxruntime-gpu", "onnxruntime-directml", "onnxruntime-openvino")
+# The TensorRT libraries' wheels: engines are valid for one TensorRT version only.
+TENSORRT = ("tensorrt-cu12-libs", "tensorrt-cu13-libs")
 # quantize_static's own calibrator settings. "entropy" is not offered: ORT 1.31's entropy histogram (128 bins
 # for 128 quantised bins) leaves the KL search one candidate, the full range, so it would calibrate exactly like
 # "minmax" under another name.
@@ -40,26 +41,20 @@ class OnnxRuntimeBackend(Backend):
     """Exports PyTorch and Keras models to ONNX (or takes ONNX files as given) and runs them with ONNX Runtime."""
 
     name = "onnxruntime"
-    description = "ONNX Runtime: CPU, CUDA and TensorRT providers; fp16 conversion, int8 QDQ quantisation"
+    description = ("ONNX Runtime: CPU, CUDA and TensorRT providers; fp16 conversion, int8 QDQ quantisation (CPU) "
+                   "and TensorRT int8 from a calibration table")
     supports = (Support(FRAMEWORKS, ("none",), ("fp32", "fp16"), ("cpu", "cuda", "tensorrt")),
                 Support(FRAMEWORKS, ("ptq_dynamic", "ptq_static"), ("int8",), ("cpu",)),
-                Support(FRAMEWORKS, ("ptq_static",), ("int8",), ("tensorrt",)))
+                Support(FRAMEWORKS, ("ptq_static",), ("int8",), ("tensorrt",)),
+                # a tfmot QAT model: tf2onnx turns its fake-quantisation into QuantizeLinear/DequantizeLinear pairs
+                Support(("tensorflow",), QAT_KINDS, ("int8",), ("cpu",)))
     baseline_for = ("onnx",)
 
     def versions(self) -> dict[str, str]:
-        return installed_versions(*DISTRIBUTIONS, "onnx", "torch", "tf2onnx", "tensorflow")
+        return installed_versions(*DISTRIBUTIONS, *TENSORRT, "onnx", "torch", "tf2onnx", "tensorflow")
 
     def probe(self, target: str, precision: str) -> str | None:
-        if target == "cpu":
-            return None
-        reasons = [reason] if (reason := hardware.no_gpu_reason()) else []
-        import onnxruntime as ort
-
-        available = ort.get_available_providers()
-        if PROVIDERS[target] not in available:
-            reasons.append(f"the installed {_package()} has no {PROVIDERS[target]} (it has "
-                           f"{', '.join(available)}); install onnxruntime-gpu in its place")
-        return "; ".join(reasons) or None
+        return None if target == "cpu" else "; ".join(probe_reasons(target, precision)) or None
 
     def probe_source(self, framework: str, source_format: str) -> str | None:
         if framework != "tensorflow" or importlib.util.find_spec("tf2onnx") is not None:
@@ -72,48 +67,43 @@ class OnnxRuntimeBackend(Backend):
     def convert(self, request: ConvertRequest) -> dict[str, Any]:
         import onnx
 
-        step = conversion_step(request.strategy)
-        if reason := self.option_reason(step, request.source.format):
+        step = backend_kind(request.strategy)
+        if reason := self.option_reason(step, request.source.format) or _tensorrt_option_reason(step, request):
             raise ValueError(reason)
         out = request.out_dir / FILE
+        engines = None
         with tempfile.TemporaryDirectory(prefix="bench-matrix-ort-") as tmp:
             model = _fp32_model(request, Path(tmp))
             input_name, batch = _single_input(model, request.source.path)
             quantisation = None
-            if step.kind in ("ptq_dynamic", "ptq_static"):
+            if request.target == "tensorrt":  # TensorRT builds its fp16 and int8 engines from the fp32 model
+                onnx.save(model, str(out))
+                quantisation, engines = _tensorrt(request, step, input_name, batch, Path(tmp))
+            elif step.kind in ("ptq_dynamic", "ptq_static"):
                 prepared = _pre_process(model, Path(tmp))
                 quantisation = (_quantise_dynamic(prepared, step, out) if step.kind == "ptq_dynamic"
                                 else _quantise_static(prepared, step, request, input_name, batch))
-            elif request.precision == "fp16" and request.target != "tensorrt":
+            elif step.kind in QAT_KINDS:  # the export already holds the learned int8 ranges as QDQ pairs
+                onnx.save(model, str(out))
+                quantisation = {"format": "QDQ", "ranges": "learned in quantisation-aware training",
+                                "via": "tf2onnx (FakeQuantWithMinMaxVars -> QuantizeLinear/DequantizeLinear)"}
+            elif request.precision == "fp16":
                 from onnxruntime.transformers.float16 import convert_float_to_float16
 
                 onnx.save(convert_float_to_float16(model, keep_io_types=True), str(out))
-            else:  # fp32, and fp16 on TensorRT, which builds its fp16 engine from the fp32 model
+            else:
                 onnx.save(model, str(out))
         opset = _opset(onnx.load(str(out), load_external_data=False))
-        return {"file": FILE, "input_name": input_name, "opset": opset,
-                "strategy": step.kind, "quantization": quantisation}
+        return {"file": FILE, "input_name": input_name, "opset": opset, "strategy": step.kind,
+                "quantization": quantisation, **({"tensorrt": engines} if engines else {})}
 
     def load(self, artifact_dir: Path, meta: dict[str, Any], target: str, precision: str,
              threads: int) -> Session:
-        import onnxruntime as ort
-
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = threads
-        options.inter_op_num_threads = 1
-        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        session = ort.InferenceSession(str(artifact_dir / meta["file"]), options,
-                                       providers=_providers(target, precision))
-        wanted, got = PROVIDERS[target], session.get_providers()
-        if got[0] != wanted:
-            why = (f"{_package()} has {wanted} but it failed to initialise: check that the CUDA, cuDNN and "
-                   f"TensorRT libraries match its build (ONNX Runtime's warnings say which)"
-                   if wanted in ort.get_available_providers()
-                   else f"{_package()} has no {wanted}: install onnxruntime-gpu in its place")
-            raise RuntimeError(f"asked ONNX Runtime for {wanted} (target {target}) but the session runs on "
-                               f"{got}, as ONNX Runtime falls back silently; {why}")
-        return OrtSession(session, meta["input_name"])
+        spec = EngineSpec.at_load(artifact_dir, meta) if target == "tensorrt" else None
+        session = open_session(artifact_dir / meta["file"], target, precision, threads, spec)
+        if target == "cpu":
+            return OrtSession(session, meta["input_name"])
+        return DeviceSession(session, meta["input_name"], "cuda")
 
 
 class OrtSession(Session):
@@ -136,22 +126,6 @@ class OrtSession(Session):
     def info(self) -> dict[str, Any]:
         return {"providers": self._session.get_providers(),
                 "threads": self._session.get_session_options().intra_op_num_threads}
-
-
-def _package() -> str:
-    """The installed ONNX Runtime distribution, e.g. 'onnxruntime 1.31.1'."""
-    found = installed_versions(*DISTRIBUTIONS)
-    return " ".join(next(iter(found.items()))) if found else "onnxruntime"
-
-
-def _providers(target: str, precision: str) -> list[Any]:
-    if target == "cpu":
-        return [PROVIDERS["cpu"]]
-    gpu = [PROVIDERS["cuda"], PROVIDERS["cpu"]]  # nodes a GPU provider lacks run on the next one
-    if target == "cuda":
-        return gpu
-    return [(PROVIDERS["tensorrt"], {"trt_fp16_enable": precision == "fp16",
-                                     "trt_int8_enable": precision == "int8"}), *gpu]
 
 
 def _fp32_model(request: ConvertRequest, tmp: Path) -> "onnx.ModelProto":
@@ -247,9 +221,22 @@ def _quantise_dynamic(model: Path, step: StrategySpec, out: Path) -> dict[str, A
 
 def _quantise_static(model: Path, step: StrategySpec, request: ConvertRequest, input_name: str,
                      batch: int | None) -> dict[str, Any]:
-    from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, \
-        quantize_static
+    """QDQ for the CPU: u8 activations and 7-bit s8 weights keep x86's VPMADDUBSW int16 pair sums unsaturated
+    (no VNNI)."""
+    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
 
+    feeds = calibration_feeds(request, step, batch)
+    per_channel = bool(step.options.get("per_channel", False))
+    method = step.options.get("method", "minmax")
+    quantize_static(model, request.out_dir / FILE, feed_reader(input_name, feeds), quant_format=QuantFormat.QDQ,
+                    per_channel=per_channel, reduce_range=True, activation_type=QuantType.QUInt8,
+                    weight_type=QuantType.QInt8, calibrate_method=getattr(CalibrationMethod, METHODS[method]))
+    return {"format": "QDQ", "activations": "QUInt8", "weights": "QInt8", "reduce_range": True,
+            "per_channel": per_channel, "method": method, "calibration_samples": sum(len(f) for f in feeds)}
+
+
+def calibration_feeds(request: ConvertRequest, step: StrategySpec, batch: int | None) -> list[np.ndarray]:
+    """The first `calibration_samples` samples of the calibration split, in the batches the calibrator runs."""
     data = calibration_data(request, step)
     if batch:  # a fixed batch size: whole batches only
         data = data[:len(data) - len(data) % batch]
@@ -258,25 +245,63 @@ def _quantise_static(model: Path, step: StrategySpec, request: ConvertRequest, i
                              f"calibration_samples to at least {batch}")
     else:  # equal batches: the entropy and percentile calibrators cannot merge ragged ones
         batch = max(d for d in range(1, CALIBRATION_BATCH + 1) if len(data) % d == 0)
+    return batches(data, batch)
+
+
+def feed_reader(input_name: str, feeds: list[np.ndarray]) -> "CalibrationDataReader":
+    """ONNX Runtime's calibration data reader over `feeds`."""
+    from onnxruntime.quantization import CalibrationDataReader
 
     class Reader(CalibrationDataReader):
         def __init__(self) -> None:
-            self._feeds = iter([{input_name: b} for b in batches(data, batch)])
+            self._feeds = iter([{input_name: f} for f in feeds])
 
         def get_next(self) -> dict[str, np.ndarray] | None:
             return next(self._feeds, None)
 
-    per_channel = bool(step.options.get("per_channel", False))
-    method = step.options.get("method", "minmax")
-    if request.target == "tensorrt":  # TensorRT takes symmetric int8 (zero point 0) activations and weights
-        activations, reduce_range = QuantType.QInt8, False
-        extra = {"ActivationSymmetric": True, "WeightSymmetric": True}
-    else:  # x86 without VNNI: u8 activations and 7-bit s8 weights keep VPMADDUBSW's int16 pair sums unsaturated
-        activations, reduce_range, extra = QuantType.QUInt8, True, {}
-    quantize_static(model, request.out_dir / FILE, Reader(), quant_format=QuantFormat.QDQ,
-                    per_channel=per_channel, reduce_range=reduce_range, activation_type=activations,
-                    weight_type=QuantType.QInt8, calibrate_method=getattr(CalibrationMethod, METHODS[method]),
-                    extra_options=extra)
-    return {"format": "QDQ", "activations": activations.name, "weights": "QInt8",
-            "reduce_range": reduce_range, "per_channel": per_channel, "method": method, **extra,
-            "calibration_samples": len(data)}
+    return Reader()
+
+
+def _tensorrt_option_reason(step: StrategySpec, request: ConvertRequest) -> str | None:
+    if request.target == "tensorrt" and step.kind == "ptq_static" and "per_channel" in step.options:
+        return ("ONNX Runtime's TensorRT int8 has no per_channel setting (the calibration table ranges activations "
+                "only; TensorRT chooses the weight scales itself); remove the option for target tensorrt")
+    return None
+
+
+def _tensorrt(request: ConvertRequest, step: StrategySpec, input_name: str, batch: int | None,
+              tmp: Path) -> tuple[dict[str, Any] | None, dict[str, Any]]:
+    """The calibration table (ptq_static) and the engines, built into the artifact's cache directory; returns the
+    quantisation facts and the engines' metadata."""
+    if ":" in input_name or "," in input_name:
+        raise ValueError(f"{request.source.path}: the input {input_name!r} cannot be named in the TensorRT "
+                         f"provider's shape profiles, which split at ':' and ','; rename the model's input")
+    cache = request.out_dir / CACHE_DIR
+    cache.mkdir()
+    quantisation = None
+    if step.kind == "ptq_static":
+        feeds = calibration_feeds(request, step, batch)
+        method = step.options.get("method", "minmax")
+        tensors = write_calibration_table(request.out_dir / FILE, feed_reader(input_name, feeds), METHODS[method],
+                                          cache)
+        quantisation = {"format": "TensorRT calibration table", "table": f"{CACHE_DIR}/{CALIBRATION_TABLE}",
+                        "method": method, "symmetric": True, "tensors": tensors,
+                        "calibration_samples": sum(len(f) for f in feeds)}
+    timing = (request.shared_dir or tmp) / "trt_timing_cache"  # layer timings, shared by the source's other modes
+    timing.mkdir(exist_ok=True)
+    spec = EngineSpec(input_name, request.source.input_shape, None if batch else request.max_batch, cache,
+                      quantisation is not None, timing)
+    engines = build_engines(request.out_dir / FILE, request.precision, request.threads, spec,
+                            _engine_feeds(request, batch))
+    return quantisation, {**spec.to_meta(), "engines": engines}
+
+
+def _engine_feeds(request: ConvertRequest, batch: int | None) -> list[np.ndarray]:
+    """Calibration samples at every batch size an engine must serve: the model's fixed one, else 1 and max_batch
+    (zeros when the calibration split is empty: the engines depend on shapes only)."""
+    shape = request.source.input_shape
+    sizes = [batch] if batch else sorted({1, request.max_batch})
+    samples = np.asarray(request.calibration(max(sizes)), dtype=np.float32)
+    if len(samples) == 0:
+        samples = np.zeros((1, *shape), np.float32)
+    return [np.resize(samples, (n, *shape)) for n in sizes]

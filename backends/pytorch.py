@@ -19,14 +19,14 @@ class PyTorchBackend(TorchBackend):
     name = "pytorch"
     description = "PyTorch eager mode under torch.inference_mode() (the PyTorch fp32 baseline)"
     supports = (Support(("pytorch",), ("none",), ("fp32",), ("cpu",)),
-                Support(("pytorch",), ("none",), ("fp32", "fp16"), ("cuda",)))
+                Support(("pytorch",), ("none",), ("fp32", "fp16", "bf16"), ("cuda",)))
     baseline_for = ("pytorch",)
 
     def convert(self, request: ConvertRequest) -> dict[str, Any]:
         step = conversion_step(request.strategy)
         if step.kind != "none":
             raise ValueError(f"the pytorch backend runs the model as it is; strategy kind {step.kind!r} "
-                             f"needs another backend (torchscript or onnxruntime)")
+                             f"needs another backend (torchscript, onnxruntime or torch_tensorrt)")
         source = request.source
         shutil.copy2(source.path, request.out_dir / source.path.name)
         return {"source": {**source.to_dict(), "path": source.path.name}}

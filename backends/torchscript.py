@@ -10,7 +10,7 @@ from bench_matrix.matrix.expand import backend_kind
 from bench_matrix.matrix.spec import StrategySpec
 
 from ._common import batches, calibration_data, static_options_reason
-from ._torch import TorchBackend, TorchSession, pin_threads, place, quiet_torch, use_engine
+from ._torch import TorchBackend, TorchSession, pin_threads, place, quiet_torch, torch_dtype, use_engine
 
 if TYPE_CHECKING:
     import torch
@@ -25,7 +25,7 @@ class TorchScriptBackend(TorchBackend):
     description = "TorchScript via torch.jit.trace; int8 by torch.ao dynamic or FX static quantisation"
     supports = (Support(("pytorch",), ("none",), ("fp32",), ("cpu",)),
                 Support(("pytorch",), ("ptq_dynamic", "ptq_static", "qat"), ("int8",), ("cpu",)),
-                Support(("pytorch",), ("none",), ("fp32", "fp16"), ("cuda",)))
+                Support(("pytorch",), ("none",), ("fp32", "fp16", "bf16"), ("cuda",)))
 
     def option_reason(self, step: StrategySpec, source_format: str) -> str | None:
         """torch.ao quantises an nn.Module (a state_dict source) and calibrates with min-max only."""
@@ -54,8 +54,7 @@ class TorchScriptBackend(TorchBackend):
             elif step.kind != "none":
                 module, meta["quantization"] = _quantise(module, step, request)
             module = place(module, request.target, request.precision)
-            device = "cuda" if request.target == "cuda" else "cpu"
-            dtype = torch.float16 if request.precision == "fp16" else torch.float32
+            device, dtype = ("cpu" if request.target == "cpu" else "cuda"), torch_dtype(request.precision)
             generator = torch.Generator().manual_seed(request.seed)
             # A batch of 2, not 1, so that nothing in the trace specialises on a size-1 batch.
             example = torch.rand((2, *request.source.input_shape), generator=generator).to(device, dtype)
@@ -74,7 +73,7 @@ class TorchScriptBackend(TorchBackend):
             use_engine(meta["quantization"]["engine"])
         with quiet_torch():
             module = torch.jit.load(str(artifact_dir / meta["file"]),
-                                    map_location="cuda" if target == "cuda" else "cpu")
+                                    map_location="cpu" if target == "cpu" else "cuda")
         return TorchSession(module.eval(), target, precision)
 
 

@@ -261,10 +261,13 @@ def ensure_artifact(ws: Workspace, backend: Backend, source: SourceModel, strate
                     settings: Any) -> tuple[Path, dict[str, Any], bool]:
     """Convert once per content hash (source, strategy, options, libraries, calibration data); reuse after."""
     calibrated = any("calibration_samples" in STRATEGY_KINDS[k]["options"] for k in strategy.kinds())
+    # A TensorRT engine covers batches up to max_batch and runs only on the GPU model it was built for.
+    engine = ({"max_batch": settings.batch_size, "gpu": [(g.name, g.capability) for g in hardware.gpus()[:1]]}
+              if target == "tensorrt" else {})
     key = digest({"source": source.sha256, "backend": backend.name, "versions": backend.versions(),
                   "strategy": strategy.to_dict(), "precision": precision, "target": target,
                   "calibration": [dinfo["fingerprint"], layout] if calibrated else None, "seed": settings.seed,
-                  **({"max_batch": settings.batch_size} if target == "tensorrt" else {})})
+                  **engine})
     final = ws.artifact(backend.name, key)
     if (final / "manifest.json").is_file():
         return final, json.loads((final / "manifest.json").read_text()), True

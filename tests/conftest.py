@@ -1,4 +1,5 @@
-"""Shared fixtures: a tiny user project (model factory + weights, .npz dataset, matrix) and a CLI runner."""
+"""Shared fixtures: a tiny user project (model factory + weights, .npz dataset, matrix), the fitted tiny model as a
+backend source with its reference outputs, and a CLI runner."""
 
 from __future__ import annotations
 
@@ -7,10 +8,21 @@ import subprocess
 import sys
 from pathlib import Path
 
+import hashlib
+
+from typing import TYPE_CHECKING
+
 import numpy as np
 import pytest
 
+if TYPE_CHECKING:
+    from bench_matrix.sources import SourceModel
+
 TESTS = Path(__file__).resolve().parent
+sys.path.insert(0, str(TESTS))
+import tiny_models  # noqa: E402
+
+TINY_X = tiny_models.images(16, 2)  # the inputs the `reference` outputs belong to
 FAST_SETTINGS = ("settings: {min_iterations: 5, min_time_s: 0.02, warmup_iterations: 2, warmup_s: 0.0, "
                  "throughput_time_s: 0.02, batch_size: 8, timeout_s: 120}\n")
 
@@ -30,6 +42,32 @@ def tiny_project(tmp_path: Path) -> Path:
     y = np.stack([x[..., 0].mean(axis=(1, 2)), x[..., 1].mean(axis=(1, 2))], axis=1) / 255.0
     np.savez(tmp_path / "data.npz", x=x, y=y.astype(np.float32))
     return tmp_path
+
+
+@pytest.fixture(scope="module")
+def source(tmp_path_factory: pytest.TempPathFactory) -> "SourceModel":
+    """tiny_models.fitted() as a state_dict source: its outputs follow its input as PilotNet's do (a randomly
+    initialised net outputs little but its biases, against which any precision or int8 check is vacuous)."""
+    import torch
+
+    from bench_matrix.sources import SourceModel
+
+    path = tmp_path_factory.mktemp("source") / "tiny.pt"
+    torch.save(tiny_models.fitted().state_dict(), path)
+    return SourceModel(name="tiny", framework="pytorch", format="state_dict", path=path,
+                       sha256=hashlib.sha256(path.read_bytes()).hexdigest(), input_shape=tiny_models.INPUT_SHAPE,
+                       factory="tiny_models:tiny", python_path=(str(TESTS),))
+
+
+@pytest.fixture(scope="module")
+def reference(source: "SourceModel") -> np.ndarray:
+    """The fitted tiny model's fp32 outputs on TINY_X."""
+    import torch
+
+    with torch.inference_mode():
+        y = source.load()(torch.from_numpy(TINY_X)).numpy()
+    assert y.std(axis=0).min() > 0.2  # the outputs do follow the input
+    return y
 
 
 def matrix_text(backends: list[str], strategies: list[str], precisions: list[str], targets: list[str],

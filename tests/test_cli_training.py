@@ -60,13 +60,18 @@ def test_tensorflow_pruning_clustering_and_qat_in_tflite(tmp_path: Path) -> None
         "dataset: {npz: data.npz, split: {train: 0.5, calibration: 0.25, test: 0.25}}\n" + TF_STRATEGIES +
         "axes: {backend: [tflite], strategy: [prune, cluster, qat, prune_dynamic], precision: [fp32, int8], "
         "target: [cpu]}\n"
+        "include:\n  - {backend: onnxruntime, strategy: qat, precision: int8, target: cpu}\n"
         "settings: {min_iterations: 5, min_time_s: 0.02, warmup_iterations: 2, warmup_s: 0.0, "
         "throughput_time_s: 0.02, batch_size: 8, timeout_s: 300}\n")
     run = cli(project, "run", "m.yaml", timeout=900)
     assert run.returncode == 0 and "0 failed" in run.stdout, run.stdout + run.stderr
     found = {key: r for key, r in _records(project).items() if r["status"] == "ok"}
     assert set(found) == {"tflite/prune/fp32/cpu", "tflite/cluster/fp32/cpu", "tflite/qat/int8/cpu",
-                          "tflite/prune_dynamic/int8/cpu"}
+                          "tflite/prune_dynamic/int8/cpu", "onnxruntime/qat/int8/cpu"}
+    # ONNX Runtime runs the same QAT model as QDQ pairs (tf2onnx): the same learned ranges, the same accuracy
+    ort_qat, tflite_qat = (found[f"{b}/qat/int8/cpu"]["metrics"] for b in ("onnxruntime", "tflite"))
+    assert ort_qat["finetune"] == tflite_qat["finetune"]
+    assert ort_qat["mse"] == pytest.approx(tflite_qat["mse"], rel=0.1)
     pruned = found["tflite/prune/fp32/cpu"]["metrics"]
     assert pruned["sparsity"] >= 0.6 - 0.02 and pruned.get("clusters") is None  # tfmot rounds per layer
     assert found["tflite/cluster/fp32/cpu"]["metrics"]["clusters"] <= 4

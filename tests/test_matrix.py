@@ -55,7 +55,7 @@ def test_typo_in_key_names_file_line_allowed_and_suggestion(tmp_path):
 
 def test_wrong_enum_value_lists_allowed_values(tmp_path):
     (message,) = problems(tmp_path, BASE.replace("precision: [fp32, int8]", "precision: [fp32, int4]"))
-    assert ":9: axes.precision[1]: 'int4' is not allowed; allowed: fp32, fp16, int8" in message
+    assert ":9: axes.precision[1]: 'int4' is not allowed; allowed: fp32, fp16, bf16, int8" in message
 
 
 def test_unknown_strategy_suggests_the_close_one(tmp_path):

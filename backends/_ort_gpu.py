@@ -1,0 +1,221 @@
+"""ONNX Runtime's providers: which ones a target gets and with which options (TensorRT's engine cache, shape
+profile and int8 calibration table inside the artifact), why this machine cannot run a target, TensorRT engines
+built at conversion, and sessions whose input and output stay on the GPU."""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from bench_matrix import hardware
+from bench_matrix.backends.base import Session
+from bench_matrix.measure.env import installed_versions
+
+if TYPE_CHECKING:
+    import onnxruntime
+    from onnxruntime.quantization import CalibrationDataReader
+
+PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider",
+             "tensorrt": "TensorrtExecutionProvider"}
+# Every distribution that installs the `onnxruntime` module; whichever is installed is the one reported.
+DISTRIBUTIONS = ("onnxruntime", "onnxruntime-gpu", "onnxruntime-directml", "onnxruntime-openvino")
+CACHE_DIR = "trt_cache"  # inside the artifact: TensorRT's engines and profiles, and the int8 calibration table
+# write_calibration_table writes calibration.json, calibration.flatbuffers and calibration.cache. With
+# trt_int8_use_native_calibration_table off, the TensorRT provider reads the flatbuffers one (ReadDynamicRange in
+# onnxruntime/core/providers/tensorrt/tensorrt_execution_provider_utils.h) from
+# GetCachePath(trt_engine_cache_path, trt_int8_calibration_table_name): the name is relative to the cache path.
+CALIBRATION_TABLE = "calibration.flatbuffers"
+# The TensorRT provider appends these to an engine's file name when it sets the builder's FP16 or INT8 flag, and
+# leaves the flag off (with a warning only) where the GPU lacks fast fp16 or int8: the file names tell what it built.
+ENGINE_PRECISION = {"fp16": "_fp16", "int8": "_int8"}
+Provider = str | tuple[str, dict[str, str]]
+
+
+@dataclass(frozen=True)
+class EngineSpec:
+    """What the TensorRT provider is told about one artifact's engines."""
+
+    input_name: str
+    sample_shape: tuple[int, ...]
+    max_batch: int | None  # profile batches 1..max_batch; None: the model's batch size is fixed (no profile)
+    cache_dir: Path
+    calibrated: bool  # cache_dir holds an int8 calibration table
+    timing_dir: Path | None = None  # TensorRT's timing cache while engines are built; None at load
+
+    @classmethod
+    def at_load(cls, artifact_dir: Path, meta: dict[str, Any]) -> "EngineSpec":
+        """The spec of an artifact in its final place: the cache directory found relative to `artifact_dir`."""
+        if "tensorrt" not in meta:
+            raise RuntimeError(f"{artifact_dir} was converted for TensorRT before engines were built at conversion "
+                               f"(its metadata has no 'tensorrt' entry): delete it so that it is converted again")
+        trt = meta["tensorrt"]
+        return cls(meta["input_name"], tuple(trt["input_shape"]), trt["max_batch"], artifact_dir / CACHE_DIR,
+                   trt["calibrated"])
+
+    def to_meta(self) -> dict[str, Any]:
+        """What `at_load` needs, as JSON (paths are not kept: the artifact moves after conversion)."""
+        return {"input_shape": list(self.sample_shape), "max_batch": self.max_batch, "calibrated": self.calibrated}
+
+
+def providers(target: str, precision: str, spec: EngineSpec | None = None) -> list[Provider]:
+    """The provider list of a session for `target`: nodes a GPU provider lacks run on the next one."""
+    if target == "cpu":
+        return [PROVIDERS["cpu"]]
+    gpu: list[Provider] = [PROVIDERS["cuda"], PROVIDERS["cpu"]]
+    if target == "cuda":
+        return gpu
+    if spec is None:
+        raise ValueError("a TensorRT session needs the artifact's EngineSpec (cache directory, shape profile)")
+    return [(PROVIDERS["tensorrt"], tensorrt_options(precision, spec)), *gpu]
+
+
+def tensorrt_options(precision: str, spec: EngineSpec) -> dict[str, str]:
+    """TensorrtExecutionProvider options, as the strings ONNX Runtime's Python API passes on."""
+    options = {"trt_fp16_enable": str(precision == "fp16"), "trt_int8_enable": str(precision == "int8"),
+               "trt_engine_cache_enable": "True", "trt_engine_cache_path": str(spec.cache_dir),
+               "trt_timing_cache_enable": str(spec.timing_dir is not None)}
+    if spec.timing_dir is not None:
+        options["trt_timing_cache_path"] = str(spec.timing_dir)
+    if spec.calibrated:
+        options |= {"trt_int8_calibration_table_name": CALIBRATION_TABLE,
+                    "trt_int8_use_native_calibration_table": "False"}
+    if spec.max_batch is not None:  # "name:1x3x66x200"; opt = max_batch, where a batch does the most work
+        sample = "x".join(str(d) for d in spec.sample_shape)
+        options |= {"trt_profile_min_shapes": f"{spec.input_name}:1x{sample}",
+                    "trt_profile_opt_shapes": f"{spec.input_name}:{spec.max_batch}x{sample}",
+                    "trt_profile_max_shapes": f"{spec.input_name}:{spec.max_batch}x{sample}"}
+    return options
+
+
+def package() -> str:
+    """The installed ONNX Runtime distribution, e.g. 'onnxruntime-gpu 1.31.1'."""
+    found = installed_versions(*DISTRIBUTIONS)
+    return " ".join(next(iter(found.items()))) if found else "onnxruntime"
+
+
+def probe_reasons(target: str, precision: str) -> list[str]:
+    """Why this machine cannot run `target` (cuda or tensorrt) at `precision`; empty when it can."""
+    import onnxruntime as ort
+
+    # onnxruntime.cuda_version: the CUDA version a GPU build targets, from capi/build_and_package_info.py
+    # (onnxruntime_validation.get_package_name_and_version_info); empty in CPU builds.
+    return gpu_reasons(target, precision, ort.get_available_providers(), getattr(ort, "cuda_version", "") or None)
+
+
+def gpu_reasons(target: str, precision: str, available: list[str], built_for: str | None) -> list[str]:
+    """Each missing piece once, in order: GPU, provider, driver for the build's CUDA, GPU generation."""
+    wanted = PROVIDERS[target]
+    reasons = [reason] if (reason := hardware.no_gpu_reason()) else []
+    if wanted not in available:
+        reasons.append(f"the installed {package()} has no {wanted} (it has {', '.join(available)}); "
+                       f"install onnxruntime-gpu in its place")
+    if reason := hardware.cuda_mismatch_reason(package().split()[0], built_for):
+        reasons.append(reason)
+    if reason := hardware.precision_reason(precision, f"{precision} on {wanted}"):
+        reasons.append(reason)
+    return reasons
+
+
+def fallback_message(target: str, got: list[str], available: list[str]) -> str:
+    """Why a session that should run on `target`'s provider runs on `got` instead, and what to fix."""
+    wanted = PROVIDERS[target]
+    why = (f"{package()} has {wanted} but it failed to initialise: check that the CUDA, cuDNN and TensorRT "
+           f"libraries match its build (ONNX Runtime's warnings say which)" if wanted in available
+           else f"{package()} has no {wanted}: install onnxruntime-gpu in its place")
+    return (f"asked ONNX Runtime for {wanted} (target {target}) but the session runs on {got}, as ONNX Runtime "
+            f"falls back silently; {why}")
+
+
+def open_session(model: Path, target: str, precision: str, threads: int,
+                 spec: EngineSpec | None = None) -> "onnxruntime.InferenceSession":
+    """A session on `target`'s provider, or RuntimeError when ONNX Runtime fell back to another one."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    session = ort.InferenceSession(str(model), options, providers=providers(target, precision, spec))
+    if session.get_providers()[0] != PROVIDERS[target]:
+        raise RuntimeError(fallback_message(target, session.get_providers(), ort.get_available_providers()))
+    return session
+
+
+def write_calibration_table(model: Path, reader: "CalibrationDataReader", method: str, cache_dir: Path) -> int:
+    """Calibrate the fp32 `model` on the CPU with ONNX Runtime's calibrator `method` (MinMax or Percentile) and
+    write the table the TensorRT provider reads into cache_dir; returns how many tensors it ranges."""
+    from onnxruntime.quantization import CalibrationMethod, create_calibrator
+    from onnxruntime.quantization import write_calibration_table as write_tables
+
+    with tempfile.TemporaryDirectory(prefix="bench-matrix-trt-calibration-") as tmp:
+        copy = Path(tmp) / model.name  # the calibrator writes beside the model it reads
+        shutil.copyfile(model, copy)
+        # symmetric: write_calibration_table keeps max(highest, lowest) of each tensor, which TensorRT applies as
+        # the range -value..value, so the range must be symmetric about zero already.
+        calibrator = create_calibrator(copy, augmented_model_path=str(Path(tmp) / "augmented.onnx"),
+                                       calibrate_method=getattr(CalibrationMethod, method),
+                                       providers=[PROVIDERS["cpu"]], extra_options={"symmetric": True})
+        calibrator.collect_data(reader)
+        ranges = calibrator.compute_data()
+        write_tables(ranges, dir=tmp)
+        shutil.copyfile(Path(tmp) / CALIBRATION_TABLE, cache_dir / CALIBRATION_TABLE)
+    return len(ranges.data)
+
+
+def build_engines(model: Path, precision: str, threads: int, spec: EngineSpec, feeds: list[np.ndarray]) -> list[str]:
+    """Build the TensorRT engines into spec.cache_dir by running `model` once per feed; their file names."""
+    session = open_session(model, "tensorrt", precision, threads, spec)
+    for x in feeds:
+        session.run(None, {spec.input_name: x})
+    engines = sorted(p.name for p in spec.cache_dir.glob("*.engine"))
+    if not engines:
+        raise RuntimeError(f"the TensorRT provider wrote no engine for {model.name} into {spec.cache_dir}: TensorRT "
+                           f"takes none of its nodes, so the cell would measure the CUDA provider instead")
+    mark = ENGINE_PRECISION.get(precision)
+    if mark and (plain := [e for e in engines if mark not in e]):
+        raise RuntimeError(f"TensorRT built {', '.join(plain)} without its {precision} flag: the provider leaves "
+                           f"fp16 and int8 off where the GPU lacks fast support for them (ONNX Runtime's warnings "
+                           f"say so); run this cell on a GPU that has it")
+    return engines
+
+
+class DeviceSession(Session):
+    """A session whose input is copied to the device once (prepare) and whose output stays there until fetch."""
+
+    def __init__(self, session: "onnxruntime.InferenceSession", input_name: str, device: str):
+        self._session = session
+        self._run = session.run_with_iobinding
+        self._input = input_name
+        self._output = session.get_outputs()[0].name
+        self._device = device
+
+    def prepare(self, x: np.ndarray) -> "onnxruntime.IOBinding":
+        import onnxruntime as ort
+
+        value = ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(x, dtype=np.float32), self._device, 0)
+        binding = self._session.io_binding()
+        binding.bind_ortvalue_input(self._input, value)
+        binding.bind_output(self._output, self._device, 0)
+        binding.synchronize_inputs()  # the copy has landed before anything is timed
+        return binding
+
+    def execute(self, prepared: "onnxruntime.IOBinding") -> "onnxruntime.IOBinding":
+        # Run (which run_with_iobinding calls) ends by synchronising every provider's stream with the host
+        # (cudaStreamSynchronize for CUDA) unless the run option disable_synchronize_execution_providers is "1"
+        # (include/onnxruntime/core/session/onnxruntime_run_options_config_keys.h): it returns with the work done.
+        self._run(prepared)
+        return prepared
+
+    def fetch(self, outputs: "onnxruntime.IOBinding") -> np.ndarray:
+        return np.asarray(outputs.copy_outputs_to_cpu()[0], dtype=np.float32)
+
+    def info(self) -> dict[str, Any]:
+        return {"providers": self._session.get_providers(),
+                "threads": self._session.get_session_options().intra_op_num_threads,
+                "io_binding": f"{self._device}:0"}

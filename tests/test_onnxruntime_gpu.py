@@ -1,0 +1,257 @@
+"""ONNX Runtime's CUDA and TensorRT side with the real onnxruntime package: provider options, the TensorRT
+calibration table, probe reasons, fallback detection and the I/O-bound session. Most of it runs on a CPU-only
+build; the test marked gpu needs the TensorRT provider and skips elsewhere with the probe's reason."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+TESTS = Path(__file__).resolve().parent
+sys.path.insert(0, str(TESTS))
+
+import tiny_models  # noqa: E402
+
+from bench_matrix import hardware  # noqa: E402
+from bench_matrix.backends.base import ConvertRequest  # noqa: E402
+from bench_matrix.matrix.spec import StrategySpec  # noqa: E402
+from bench_matrix.sources import SourceModel  # noqa: E402
+from bench_matrix_backends import _ort_gpu  # noqa: E402
+from bench_matrix_backends._ort_gpu import CACHE_DIR, CALIBRATION_TABLE, EngineSpec  # noqa: E402
+from bench_matrix_backends.onnxruntime import METHODS, OnnxRuntimeBackend, calibration_feeds, feed_reader  # noqa: E402
+
+BACKEND = OnnxRuntimeBackend()
+CPU, CUDA, TRT = "CPUExecutionProvider", "CUDAExecutionProvider", "TensorrtExecutionProvider"
+TRT_INT8 = BACKEND.probe("tensorrt", "int8")
+OLD_GPU = hardware.Gpu("Tesla M60", "470.57.02", 8129, (5, 2))
+
+
+X = tiny_models.images(16, 2)
+# The first 30 samples cover X; the 10 after them reach 2.0, so a range above 1 means they were calibrated on.
+CALIBRATION = np.concatenate([X, tiny_models.images(14, 1), 2 * tiny_models.images(10, 3)])
+
+
+def _request(source: SourceModel, out: Path, kind: str = "none", precision: str = "fp32", target: str = "cpu",
+             max_batch: int = 1, **options: Any) -> ConvertRequest:
+    out.mkdir(parents=True, exist_ok=True)
+    return ConvertRequest(source=source, strategy=StrategySpec(kind, kind, options), precision=precision,
+                          target=target, out_dir=out, calibration=lambda n: CALIBRATION[:n], threads=1, seed=0,
+                          max_batch=max_batch)
+
+
+def _fp32_onnx(source: SourceModel, out: Path) -> Path:
+    """The source exported by the backend (a dynamic batch axis, input 'input')."""
+    BACKEND.convert(_request(source, out))
+    return out / "model.onnx"
+
+
+def _no_provider(provider: str, available: list[str]) -> str:
+    return (f"the installed {_ort_gpu.package()} has no {provider} (it has {', '.join(available)}); "
+            f"install onnxruntime-gpu in its place")
+
+
+def _read_table(path: Path) -> dict[str, float]:
+    """The calibration table as the TensorRT provider reads it: tensor name -> dynamic range."""
+    from onnxruntime.quantization.CalTableFlatBuffers.TrtTable import TrtTable
+
+    table = TrtTable.GetRootAs(path.read_bytes(), 0)
+    return {table.Dict(i).Key().decode(): float(table.Dict(i).Value()) for i in range(table.DictLength())}
+
+
+@pytest.mark.parametrize(("target", "precision", "expected"), [
+    ("cpu", "fp32", [CPU]), ("cpu", "int8", [CPU]), ("cuda", "fp32", [CUDA, CPU]), ("cuda", "fp16", [CUDA, CPU])])
+def test_cpu_and_cuda_provider_lists(target: str, precision: str, expected: list[str]) -> None:
+    assert _ort_gpu.providers(target, precision) == expected
+
+
+@pytest.mark.parametrize("precision", ["fp32", "fp16", "int8"])
+def test_tensorrt_options_keep_engines_and_table_in_the_artifact(precision: str, tmp_path: Path) -> None:
+    artifact = tmp_path / "artifact"
+    spec = EngineSpec("input", (3, 66, 200), 32, artifact / CACHE_DIR, precision == "int8", tmp_path / "timing")
+    (name, options), cuda, cpu = _ort_gpu.providers("tensorrt", precision, spec)
+    expected = {"trt_fp16_enable": str(precision == "fp16"), "trt_int8_enable": str(precision == "int8"),
+                "trt_engine_cache_enable": "True", "trt_engine_cache_path": str(artifact / CACHE_DIR),
+                "trt_timing_cache_enable": "True", "trt_timing_cache_path": str(tmp_path / "timing"),
+                "trt_profile_min_shapes": "input:1x3x66x200", "trt_profile_opt_shapes": "input:32x3x66x200",
+                "trt_profile_max_shapes": "input:32x3x66x200"}
+    if precision == "int8":
+        expected |= {"trt_int8_calibration_table_name": CALIBRATION_TABLE,
+                     "trt_int8_use_native_calibration_table": "False"}
+    assert (name, cuda, cpu) == (TRT, CUDA, CPU)
+    assert options == expected
+    with pytest.raises(ValueError, match="EngineSpec"):
+        _ort_gpu.providers("tensorrt", precision)
+
+
+def test_a_fixed_batch_model_gets_no_shape_profile(tmp_path: Path) -> None:
+    options = _ort_gpu.tensorrt_options("fp16", EngineSpec("image", (3, 16, 16), None, tmp_path, False))
+    assert not any(key.startswith("trt_profile") for key in options)
+    assert options["trt_timing_cache_enable"] == "False" and "trt_timing_cache_path" not in options
+
+
+def test_load_finds_the_engines_where_the_artifact_was_moved(tmp_path: Path) -> None:
+    """The build's options and the load's differ only in the cache's place and the timing cache, so that the
+    provider's engine and profile files (named from the model's file name and graph, not its path) match."""
+    built = EngineSpec("input", (3, 16, 16), 8, tmp_path / "x.tmp1" / "model" / CACHE_DIR, True, tmp_path / "timing")
+    meta = {"input_name": "input", "tensorrt": json.loads(json.dumps({**built.to_meta(), "engines": ["e.engine"]}))}
+    final = tmp_path / "x" / "model"
+    loaded = EngineSpec.at_load(final, meta)
+    assert loaded.cache_dir == final / CACHE_DIR and loaded.timing_dir is None
+    place = {"trt_engine_cache_path", "trt_timing_cache_enable", "trt_timing_cache_path"}
+    build_options, load_options = (_ort_gpu.tensorrt_options("int8", s) for s in (built, loaded))
+    assert {k: v for k, v in build_options.items() if k not in place} == \
+           {k: v for k, v in load_options.items() if k not in place}
+    assert load_options["trt_timing_cache_enable"] == "False"
+    with pytest.raises(RuntimeError, match="no 'tensorrt' entry.*delete it"):
+        EngineSpec.at_load(final, {"input_name": "input"})
+
+
+@pytest.mark.parametrize("method", ["minmax", "percentile"])
+def test_calibration_table_ranges_each_activation_from_the_calibration_split(method: str, source: SourceModel,
+                                                                            tmp_path: Path) -> None:
+    import onnx
+    import onnxruntime as ort
+
+    model = _fp32_onnx(source, tmp_path / "fp32")
+    request = _request(source, tmp_path / "trt", "ptq_static", "int8", "tensorrt", method=method,
+                       calibration_samples=30)
+    cache = request.out_dir / CACHE_DIR
+    cache.mkdir()
+    feeds = calibration_feeds(request, request.strategy, None)
+    tensors = _ort_gpu.write_calibration_table(model, feed_reader("input", feeds), METHODS[method], cache)
+    assert [p.name for p in cache.iterdir()] == [CALIBRATION_TABLE]  # only the file the provider reads
+    table = _read_table(cache / CALIBRATION_TABLE)
+    graph = onnx.load(str(model)).graph
+    activations = {i.name for i in graph.input} | {o for node in graph.node for o in node.output}
+    assert set(table) == activations and tensors == len(activations)
+    fed = CALIBRATION[:30]
+    np.testing.assert_array_equal(np.concatenate(feeds), fed)
+    outputs = ort.InferenceSession(str(model), providers=[CPU]).run(None, {"input": fed})[0]
+    if method == "minmax":  # symmetric: the largest magnitude each tensor took on the samples fed
+        assert table["input"] == float(np.abs(fed).max())
+        assert table[graph.output[0].name] == pytest.approx(float(np.abs(outputs).max()), rel=1e-5)
+    else:  # the 99.999th percentile of the magnitudes, at most the largest
+        assert 0.5 * float(np.abs(fed).max()) < table["input"] <= float(np.abs(fed).max())
+    assert all(value > 0 for value in table.values())
+
+
+@pytest.mark.filterwarnings("ignore:Specified provider")
+def test_tensorrt_engines_are_built_at_conversion_so_a_fallback_fails_it(source: SourceModel,
+                                                                        tmp_path: Path) -> None:
+    import onnxruntime as ort
+
+    if TRT in ort.get_available_providers() and not hardware.no_gpu_reason():
+        pytest.skip("TensorrtExecutionProvider may really work here")
+    request = _request(source, tmp_path, "ptq_static", "int8", "tensorrt", max_batch=8)
+    with pytest.raises(RuntimeError, match=f"asked ONNX Runtime for {TRT} \\(target tensorrt\\) but the session runs "
+                                           f"on \\['{CPU}'\\].*install onnxruntime-gpu"):
+        BACKEND.convert(request)
+    # The table went into the artifact before the engine build was tried (on CPUs, at conversion).
+    assert _read_table(tmp_path / CACHE_DIR / CALIBRATION_TABLE)["input"] == float(np.abs(CALIBRATION).max())
+
+
+def test_fallback_message_says_what_to_fix() -> None:
+    failed = _ort_gpu.fallback_message("cuda", [CPU], [CUDA, CPU])
+    assert failed.startswith(f"asked ONNX Runtime for {CUDA} (target cuda) but the session runs on ['{CPU}']")
+    assert f"has {CUDA} but it failed to initialise: check that the CUDA, cuDNN and TensorRT libraries" in failed
+    missing = _ort_gpu.fallback_message("tensorrt", [CUDA, CPU], [CUDA, CPU])
+    assert missing.endswith(f"has no {TRT}: install onnxruntime-gpu in its place")
+
+
+def test_tensorrt_int8_refuses_per_channel(source: SourceModel, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="TensorRT int8 has no per_channel setting.*remove the option for target"):
+        BACKEND.convert(_request(source, tmp_path, "ptq_static", "int8", "tensorrt", per_channel=True))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_probe_on_this_machine_names_each_missing_piece() -> None:
+    import onnxruntime as ort
+
+    available = ort.get_available_providers()
+    if not hardware.no_gpu_reason() or TRT in available or CUDA in available:
+        pytest.skip("this machine has a GPU or a GPU build of onnxruntime")
+    for target, provider in (("cuda", CUDA), ("tensorrt", TRT)):
+        expected = [hardware.no_gpu_reason(), _no_provider(provider, available)]
+        assert _ort_gpu.probe_reasons(target, "int8") == expected
+        assert BACKEND.probe(target, "fp16") == "; ".join(expected)
+    assert BACKEND.probe("cpu", "int8") is None
+
+
+def test_probe_names_a_gpu_too_old_for_the_precision(monkeypatch: pytest.MonkeyPatch) -> None:
+    import onnxruntime as ort
+
+    monkeypatch.setattr(hardware, "gpus", lambda: (OLD_GPU,))
+    gpu_build = [TRT, CUDA, CPU]
+    assert _ort_gpu.gpu_reasons("tensorrt", "int8", gpu_build, None) == [
+        f"Tesla M60 has compute capability 5.2; int8 on {TRT} needs 6.1 or newer"]
+    assert _ort_gpu.gpu_reasons("cuda", "fp16", gpu_build, None) == [
+        f"Tesla M60 has compute capability 5.2; fp16 on {CUDA} needs 6.0 or newer"]
+    assert _ort_gpu.gpu_reasons("tensorrt", "fp32", gpu_build, None) == []
+    # Through the backend, with the installed package: the provider if it lacks it, then the GPU, joined.
+    available = ort.get_available_providers()
+    missing = [] if TRT in available else [_no_provider(TRT, available)]
+    assert BACKEND.probe("tensorrt", "int8") == "; ".join(
+        [*missing, f"Tesla M60 has compute capability 5.2; int8 on {TRT} needs 6.1 or newer"])
+
+
+def test_probe_names_a_driver_too_old_for_the_build(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(hardware, "gpus", lambda: (OLD_GPU,))
+    monkeypatch.setattr(hardware, "driver_cuda_version", lambda: (12, 4))
+    reasons = _ort_gpu.gpu_reasons("cuda", "fp16", [CPU], "13.0")
+    assert len(reasons) == 3
+    assert f"has no {CUDA}" in reasons[0]
+    assert "is built for CUDA 13.0, but the NVIDIA driver supports CUDA up to 12.4" in reasons[1]
+    assert "compute capability 5.2" in reasons[2]
+    assert _ort_gpu.gpu_reasons("cuda", "fp32", [CUDA, CPU], "12.8") == []  # a newer minor is compatible
+
+
+def test_device_session_binds_the_batch_once_and_copies_the_output_back(source: SourceModel,
+                                                                        tmp_path: Path) -> None:
+    """The CUDA path's I/O binding, run on the CPU device of the real package: prepare binds an OrtValue and the
+    output, execute reruns the binding, fetch copies the output to a float32 host array."""
+    import onnxruntime as ort
+
+    model = _fp32_onnx(source, tmp_path)
+    session = _ort_gpu.open_session(model, "cpu", "fp32", 1)
+    device = _ort_gpu.DeviceSession(session, "input", "cpu")
+    expected = session.run(None, {"input": X})[0]
+    prepared = device.prepare(np.asfortranarray(X.astype(np.float64)))
+    assert isinstance(prepared, ort.IOBinding)
+    for _ in range(2):  # one binding serves every timed call
+        got = device.fetch(device.execute(prepared))
+        assert got.dtype == np.float32
+        np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(device.predict(X[:3]), expected[:3])
+    assert device.info() == {"providers": [CPU], "threads": 1, "io_binding": "cpu:0"}
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(TRT_INT8 is not None, reason=TRT_INT8 or "")
+def test_tensorrt_int8_engines_live_in_the_artifact(source: SourceModel, tmp_path: Path) -> None:
+    import onnxruntime as ort
+
+    built = tmp_path / "artifact.tmp1" / "model"
+    meta = BACKEND.convert(_request(source, built, "ptq_static", "int8", "tensorrt", max_batch=8,
+                                   calibration_samples=30))
+    cache = built / CACHE_DIR
+    engines = sorted(p.name for p in cache.glob("*.engine"))
+    assert engines and engines == meta["tensorrt"]["engines"] and all("_int8" in e for e in engines)
+    assert (cache / CALIBRATION_TABLE).is_file() and any(cache.glob("*.profile"))
+    assert not any(cache.glob("*.timing"))  # the timing cache is build state, kept outside the artifact
+    final = tmp_path / "artifact" / "model"  # moved as the runner moves a finished artifact
+    final.parent.mkdir()
+    built.rename(final)
+    files = {p.name: p.stat().st_mtime_ns for p in (final / CACHE_DIR).iterdir()}
+    session = BACKEND.load(final, json.loads(json.dumps(meta)), "tensorrt", "int8", 1)
+    got = session.predict(X[:8])  # batches 1..8: the engine's shape profile
+    assert {p.name: p.stat().st_mtime_ns for p in (final / CACHE_DIR).iterdir()} == files  # loaded, not rebuilt
+    assert session.info()["providers"][0] == TRT and session.info()["io_binding"] == "cuda:0"
+    reference = ort.InferenceSession(str(final / "model.onnx"), providers=[CPU]).run(None, {"input": X[:8]})[0]
+    np.testing.assert_allclose(got, reference, rtol=0, atol=0.1 * float(reference.std(axis=0).min()))
+    single = session.prepare(X[:1])
+    np.testing.assert_array_equal(session.fetch(session.execute(single)), session.predict(X[:1]))
