@@ -226,7 +226,7 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
     if gpu_memory is not None:
         gpu.update(gpu_name=hardware.gpus()[0].name if hardware.gpus() else None, **gpu_memory.peak())
     reference = np.load(job["reference"]) if job.get("reference") else None
-    metrics = {**artifact_size(artifact / "model"), "params": manifest["params"],
+    metrics = {**artifact_size(artifact / "model", artifact / "size.json"), "params": manifest["params"],
                **accuracy(pred, y, reference), "outputs_sha256": outputs_digest(pred),
                "latency_ms": latency_summary(durations), **gpu, **stability, **rate,
                "batch_size": settings.batch_size, "peak_rss_mb": round(peak_rss_mb, 1),

@@ -54,6 +54,20 @@ def test_artifact_size_sums_every_file_and_compresses(tmp_path):
     assert zeros < 1000 and size["size_gzip_bytes"] > 50_000  # sparse data shrinks, random data does not
 
 
+def test_artifact_size_is_kept_while_the_files_are_unchanged(tmp_path):
+    model, cache = tmp_path / "model", tmp_path / "size.json"
+    model.mkdir()
+    (model / "a.bin").write_bytes(b"\0" * 10_000)
+    first = artifact_size(model, cache)
+    assert cache.is_file() and artifact_size(model, cache) == first
+    kept = cache.read_text()
+    cache.write_text(kept.replace(f'"size_gzip_bytes": {first["size_gzip_bytes"]}', '"size_gzip_bytes": 7'))
+    assert artifact_size(model, cache)["size_gzip_bytes"] == 7  # read back, not recomputed
+    (model / "b.bin").write_bytes(b"\1" * 10)  # a new file (a TensorRT engine written at load): measured again
+    again = artifact_size(model, cache)
+    assert again["files"] == 2 and again["size_bytes"] == 10_010 and again["size_gzip_bytes"] > 7
+
+
 def test_time_calls_meets_both_minimums():
     calls = []
     settings = LoopSettings(warmup_iterations=3, warmup_s=0.0, min_iterations=10, min_time_s=0.05, max_time_s=5)
