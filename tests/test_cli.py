@@ -101,9 +101,12 @@ def _wait_for_ok_record(db: Path, proc, timeout: float = 180) -> None:
     while time.monotonic() < deadline:
         assert proc.poll() is None, proc.stdout.read()
         if db.is_file():
-            with sqlite3.connect(db) as con:
-                if con.execute("SELECT count(*) FROM results WHERE status = 'ok'").fetchone()[0]:
-                    return
+            try:
+                with sqlite3.connect(db) as con:
+                    if con.execute("SELECT count(*) FROM results WHERE status = 'ok'").fetchone()[0]:
+                        return
+            except sqlite3.OperationalError:  # the run has created the file but not yet its tables
+                pass
         time.sleep(0.2)
     raise AssertionError("no cell finished in time")
 
