@@ -4,8 +4,13 @@ built at conversion, and sessions whose input and output stay on the GPU."""
 
 from __future__ import annotations
 
+import os
+import re
 import shutil
+import sys
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -34,6 +39,8 @@ CALIBRATION_TABLE = "calibration.flatbuffers"
 # leaves the flag off (with a warning only) where the GPU lacks fast fp16 or int8: the file names tell what it built.
 ENGINE_PRECISION = {"fp16": "_fp16", "int8": "_int8"}
 Provider = str | tuple[str, dict[str, str]]
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+_FAILED = re.compile(r"Failed to (load library|create) .*")
 
 
 @dataclass(frozen=True)
@@ -93,9 +100,11 @@ def tensorrt_options(precision: str, spec: EngineSpec) -> dict[str, str]:
 
 
 def package() -> str:
-    """The installed ONNX Runtime distribution, e.g. 'onnxruntime-gpu 1.31.1'."""
-    found = installed_versions(*DISTRIBUTIONS)
-    return " ".join(next(iter(found.items()))) if found else "onnxruntime"
+    """The installed ONNX Runtime distribution, e.g. 'onnxruntime-gpu 1.31.1', or a warning that several are."""
+    found = [" ".join(item) for item in installed_versions(*DISTRIBUTIONS).items()]
+    if len(found) > 1:  # each overwrites the other's files, so which providers exist depends on the install order
+        return f"{' and '.join(found)} (both install the onnxruntime module: uninstall all of them, then install one)"
+    return found[0] if found else "onnxruntime"
 
 
 def probe_reasons(target: str, precision: str) -> list[str]:
@@ -121,14 +130,47 @@ def gpu_reasons(target: str, precision: str, available: list[str], built_for: st
     return reasons
 
 
-def fallback_message(target: str, got: list[str], available: list[str]) -> str:
-    """Why a session that should run on `target`'s provider runs on `got` instead, and what to fix."""
+def fallback_message(target: str, got: list[str], available: list[str], said: list[str] = ()) -> str:
+    """Why a session that should run on `target`'s provider runs on `got` instead, and what to fix; `said` is what
+    ONNX Runtime logged about it (`ort_said`)."""
     wanted = PROVIDERS[target]
     why = (f"{package()} has {wanted} but it failed to initialise: check that the CUDA, cuDNN and TensorRT "
-           f"libraries match its build (ONNX Runtime's warnings say which)" if wanted in available
+           f"libraries match its build" if wanted in available
            else f"{package()} has no {wanted}: install onnxruntime-gpu in its place")
     return (f"asked ONNX Runtime for {wanted} (target {target}) but the session runs on {got}, as ONNX Runtime "
-            f"falls back silently; {why}")
+            f"falls back silently; {why}{_quoted(said)}")
+
+
+def ort_said(log: list[str]) -> list[str]:
+    """ONNX Runtime's own words on a provider that failed ("Failed to load library …: libcublas.so.13 …",
+    "Failed to create CUDAExecutionProvider. Require …"), from its native log lines, each once."""
+    found = (_FAILED.search(_ANSI.sub("", line)) for line in log)
+    return list(dict.fromkeys(m.group(0).strip() for m in found if m))
+
+
+def _quoted(said: list[str]) -> str:
+    return f"; ONNX Runtime said: {' | '.join(said)}" if said else ""
+
+
+@contextmanager
+def native_log() -> Iterator[list[str]]:
+    """Collects what native code writes to stderr while inside (ONNX Runtime's C++ logger writes there, not through
+    Python) into the yielded list of lines, and passes it on to stderr unchanged."""
+    said: list[str] = []
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as log:
+        os.dup2(log.fileno(), 2)
+        try:
+            yield said
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            log.seek(0)
+            text = log.read()
+            os.write(2, text)
+            said.extend(text.decode(errors="replace").splitlines())
 
 
 def open_session(model: Path, target: str, precision: str, threads: int,
@@ -141,9 +183,25 @@ def open_session(model: Path, target: str, precision: str, threads: int,
     options.inter_op_num_threads = 1
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    session = ort.InferenceSession(str(model), options, providers=providers(target, precision, spec))
-    if session.get_providers()[0] != PROVIDERS[target]:
-        raise RuntimeError(fallback_message(target, session.get_providers(), ort.get_available_providers()))
+    wanted = PROVIDERS[target]
+    # enable_fallback=0: ONNX Runtime would otherwise retry a failed provider on the next ones, at session creation
+    # and again when a run raises EPFail (InferenceSession.run), and a cell would time another provider unnoticed.
+    with native_log() as log:
+        try:
+            session = ort.InferenceSession(str(model), options, providers=providers(target, precision, spec),
+                                           enable_fallback=0)
+        except Exception as error:  # noqa: BLE001 - ORT raises its own Fail and EPFail types
+            failed: Exception | None = error
+        else:
+            failed = None
+    said = ort_said(log)
+    if failed is not None:
+        if target == "cpu":
+            raise failed
+        raise RuntimeError(f"ONNX Runtime could not open a session on {wanted} (target {target}): "
+                           f"{str(failed).strip()}{_quoted(said)}") from failed
+    if session.get_providers()[0] != wanted:
+        raise RuntimeError(fallback_message(target, session.get_providers(), ort.get_available_providers(), said))
     return session
 
 

@@ -163,6 +163,52 @@ def test_fallback_message_says_what_to_fix() -> None:
     assert missing.endswith(f"has no {TRT}: install onnxruntime-gpu in its place")
 
 
+# What onnxruntime-gpu 1.31.1 logged on a machine without CUDA's libraries (native stderr, colour codes included).
+GPU_BUILD_LOG = [
+    "\x1b[1;31m2026-11-21 11:23:53.884905785 [E:onnxruntime:Default, provider_bridge_ort.cc:2458 operator()] "
+    "/onnxruntime_src/onnxruntime/core/session/provider_bridge_ort.cc:2043 onnxruntime::Provider& "
+    "onnxruntime::ProviderLibrary::Get() [ONNXRuntimeError] : 1 : FAIL : Failed to load library "
+    "/site/onnxruntime/capi/libonnxruntime_providers_cuda.so with error: libcublasLt.so.13: cannot open shared "
+    "object file: No such file or directory",
+    "\x1b[m",
+    "\x1b[0;93m2026-11-21 11:23:53.884971711 [W:onnxruntime:Default, onnxruntime_pybind_state.cc:1295 "
+    "CreateExecutionProviderFactoryInstance] Failed to create CUDAExecutionProvider. Require cuDNN 9.* and CUDA "
+    "13.*. Please install all dependencies as mentioned in the GPU requirements page.\x1b[m",
+]
+
+
+def test_fallback_message_quotes_what_onnxruntime_said() -> None:
+    said = _ort_gpu.ort_said(GPU_BUILD_LOG + GPU_BUILD_LOG)  # each line once
+    assert said == [
+        "Failed to load library /site/onnxruntime/capi/libonnxruntime_providers_cuda.so with error: "
+        "libcublasLt.so.13: cannot open shared object file: No such file or directory",
+        "Failed to create CUDAExecutionProvider. Require cuDNN 9.* and CUDA 13.*. Please install all dependencies "
+        "as mentioned in the GPU requirements page."]
+    message = _ort_gpu.fallback_message("cuda", [CPU], [TRT, CUDA, CPU], said)
+    assert message.endswith(f"; ONNX Runtime said: {said[0]} | {said[1]}")
+    assert _ort_gpu.ort_said(["2026-11-21 [W:onnxruntime:, graph.cc:5777] Removing initializer 'w'."]) == []
+
+
+def test_sessions_never_fall_back_and_onnxruntime_log_is_collected(tmp_path: Path,
+                                                                   capfd: pytest.CaptureFixture[str]) -> None:
+    """Sessions are opened with ONNX Runtime's provider fallback off, and what its C++ logger writes to stderr is
+    collected (here its warning about an unused initializer) and still passed on."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    x = helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N", 3])
+    y = helper.make_tensor_value_info("y", TensorProto.FLOAT, ["N", 3])
+    unused = numpy_helper.from_array(np.ones(3, np.float32), "never_read")
+    graph = helper.make_graph([helper.make_node("Relu", ["x"], ["y"])], "relu", [x], [y], [unused])
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=10),
+              tmp_path / "relu.onnx")
+    with _ort_gpu.native_log() as log:
+        session = _ort_gpu.open_session(tmp_path / "relu.onnx", "cpu", "fp32", 1)
+    assert any("Removing initializer 'never_read'" in line for line in log)
+    assert "Removing initializer 'never_read'" in capfd.readouterr().err
+    assert session._enable_fallback is False  # ONNX Runtime has no public getter for it
+
+
 def test_tensorrt_int8_refuses_per_channel(source: SourceModel, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="TensorRT int8 has no per_channel setting.*remove the option for target"):
         BACKEND.convert(_request(source, tmp_path, "ptq_static", "int8", "tensorrt", per_channel=True))
