@@ -17,7 +17,8 @@ from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.sources import SourceModel
 from bench_matrix.sources.tensorflow import keras, tensorflow
 from bench_matrix.strategies.base import FineTuneRequest, weight_stats
-from bench_matrix.strategies.tfmot import QAT_FORMAT, TfmotTrainer, _kernels, load_qat
+from bench_matrix.strategies.tfmot import TfmotTrainer
+from bench_matrix.strategies.tfmot_models import QAT_FORMAT, load_qat, stored_kernels
 
 FAST = {"fraction": 1.0, "batch_size": 32, "lr": 1e-3, "min_weights": 0}  # the tiny kernels hold 32 to 1152 weights
 
@@ -66,7 +67,7 @@ def test_prune_reaches_target_and_leaves_the_source_alone(source: SourceModel, d
     result = _run(source, data, tmp_path, ("prune", {"final_sparsity": 0.6, "initial_sparsity": 0.3,
                                                      "epochs": 2}))
     assert _sha(source.path) == before == source.sha256
-    kernels = _kernels(_load(tmp_path, result))
+    kernels = stored_kernels(_load(tmp_path, result))
     # Every Conv2D/Dense kernel is pruned (BatchNormalization has no kernel and is not counted), and tfmot
     # keeps exactly round(0.6 * size) zeros per kernel, so the measured sparsity reaches the target (a
     # rounding tolerance of one weight per kernel).
@@ -134,7 +135,7 @@ def test_qat_activation_ranges_start_from_the_data(source: SourceModel, data: An
 
 def test_cluster_limits_distinct_values(source: SourceModel, data: Any, tmp_path: Path) -> None:
     result = _run(source, data, tmp_path, ("cluster", {"clusters": 4, "epochs": 1}))
-    kernels = _kernels(_load(tmp_path, result))
+    kernels = stored_kernels(_load(tmp_path, result))
     assert len(kernels) == 4 and all(len(np.unique(k)) <= 4 for k in kernels)
     assert result.facts["clusters"] <= 4 and result.facts["target_clusters"] == 4
 
@@ -158,7 +159,7 @@ def test_qat_round_trips_and_converts_to_int8(source: SourceModel, data: Any, tm
 
 def test_pqat_preserves_sparsity(source: SourceModel, data: Any, tmp_path: Path) -> None:
     result = _run(source, data, tmp_path, ("pqat", {"final_sparsity": 0.5, "prune_epochs": 1, "qat_epochs": 1}))
-    kernels = _kernels(_load(tmp_path, result))
+    kernels = stored_kernels(_load(tmp_path, result))
     tol = len(kernels) / sum(k.size for k in kernels)
     assert result.format == QAT_FORMAT and weight_stats(kernels)["sparsity"] >= 0.5 - tol
     assert result.facts["qat"]["scheme"] == "prune_preserve"
@@ -166,7 +167,7 @@ def test_pqat_preserves_sparsity(source: SourceModel, data: Any, tmp_path: Path)
 
 def test_cqat_preserves_clusters(source: SourceModel, data: Any, tmp_path: Path) -> None:
     result = _run(source, data, tmp_path, ("cqat", {"clusters": 4, "cluster_epochs": 1, "qat_epochs": 1}))
-    kernels = _kernels(_load(tmp_path, result))
+    kernels = stored_kernels(_load(tmp_path, result))
     assert result.format == QAT_FORMAT and _per_channel_clusters(kernels) <= 4
     assert result.facts["clusters_per_channel"] == _per_channel_clusters(kernels)
 
@@ -174,7 +175,7 @@ def test_cqat_preserves_clusters(source: SourceModel, data: Any, tmp_path: Path)
 def test_pcqat_preserves_both(source: SourceModel, data: Any, tmp_path: Path) -> None:
     result = _run(source, data, tmp_path, ("pcqat", {"final_sparsity": 0.5, "clusters": 4, "prune_epochs": 1,
                                                       "cluster_epochs": 1, "qat_epochs": 1}))
-    kernels = _kernels(_load(tmp_path, result))
+    kernels = stored_kernels(_load(tmp_path, result))
     tol = len(kernels) / sum(k.size for k in kernels)
     assert weight_stats(kernels)["sparsity"] >= 0.5 - tol
     assert _per_channel_clusters(kernels) <= 4
@@ -185,12 +186,12 @@ def test_steps_prune_then_qat_is_pqat(source: SourceModel, data: Any, tmp_path: 
                   ("qat", {"epochs": 1}))
     assert result.format == QAT_FORMAT and result.facts["phases"] == ["prune", "qat"]
     assert result.facts["qat"]["scheme"] == "prune_preserve"
-    kernels = _kernels(_load(tmp_path, result))
+    kernels = stored_kernels(_load(tmp_path, result))
     assert weight_stats(kernels)["sparsity"] >= 0.5 - len(kernels) / sum(k.size for k in kernels)
 
 
 def test_strategies_from_one_source_do_not_interact(source: SourceModel, data: Any, tmp_path: Path) -> None:
-    source_zeros = weight_stats(_kernels(source.load()))["sparsity"]
+    source_zeros = weight_stats(stored_kernels(source.load()))["sparsity"]
     _run(source, data, tmp_path / "p", ("prune", {"final_sparsity": 0.8, "epochs": 1}))
     result = _run(source, data, tmp_path / "c", ("cluster", {"clusters": 8, "epochs": 1}))
     # Clustering a pruned model would leave ~80 % zeros; from the pristine source, at most one of 8 centroids

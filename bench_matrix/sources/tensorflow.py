@@ -48,7 +48,7 @@ def load_keras(source: "SourceModel") -> Any:
 
     path = str(source.path)
     if source.format == "keras_qat":  # our own trainer's output, in the workspace cache
-        from bench_matrix.strategies.tfmot import load_qat
+        from bench_matrix.strategies.tfmot_models import load_qat
 
         return load_qat(source.path)
     try:

@@ -29,6 +29,14 @@ from bench_matrix.strategies.base import (
     Trainer,
     weight_stats,
 )
+from bench_matrix.strategies.tfmot_models import (
+    QAT_FILE,
+    QAT_FORMAT,
+    is_weighted,
+    qat_custom_objects,
+    stored_kernels,
+    tfmot_module,
+)
 from bench_matrix.strategies.tfmot_ranges import init_activation_ranges, observed_ranges
 
 # Defaults of every option, per kind; a strategy's options override each one. Budgets follow the study
@@ -54,74 +62,6 @@ ORDER = ("prune", "cluster", "qat")
 RAMP_SHARE = 2 / 3  # the share of a polynomial prune phase spent raising sparsity
 INITS = {"kmeans++": "KMEANS_PLUS_PLUS", "linear": "LINEAR", "density": "DENSITY_BASED", "random": "RANDOM"}
 KERAS_FORMATS = ("keras", "h5", "saved_model")
-# A tfmot QAT model is saved as a Keras SavedModel directory: .keras cannot restore QuantizeWrapper variables,
-# and .h5 cannot restore cluster-preserving quantizers (they create one variable per centroid when built, and a
-# model rebuilt from its config has unclustered kernels); the SavedModel restores every kind. Load with load_qat.
-QAT_FORMAT = "keras_qat"
-QAT_FILE = "model_qat"
-
-
-def _tfmot() -> Any:
-    from bench_matrix.sources.tensorflow import tensorflow
-
-    tensorflow()
-    import tensorflow_model_optimization as tfmot
-
-    return tfmot
-
-
-def _qat_custom_objects() -> dict[str, Any]:
-    """Quantizers of the collaborative (cluster/prune-preserving) schemes, which quantize_scope lacks."""
-    _tfmot()
-    from tensorflow_model_optimization.python.core.quantization.keras.collab_opts.cluster_preserve import (
-        cluster_preserve_quantize_registry as cp,
-    )
-    from tensorflow_model_optimization.python.core.quantization.keras.collab_opts.prune_preserve import (
-        prune_preserve_quantize_registry as pp,
-    )
-
-    return {name: obj for module in (cp, pp) for name, obj in vars(module).items()
-            if isinstance(obj, type) and obj.__module__ == module.__name__}
-
-
-def load_qat(path: str | Path) -> Any:
-    """A fresh Keras model from a QAT model this trainer saved (format 'keras_qat': a Keras SavedModel directory
-    holding tfmot QuantizeWrapper layers), loaded inside tfmot's quantize_scope, without compiling."""
-    from bench_matrix.sources.tensorflow import keras
-
-    k = keras()
-    tfmot = _tfmot()
-    with tfmot.quantization.keras.quantize_scope(_qat_custom_objects()):
-        return k.models.load_model(str(path), compile=False)
-
-
-def _is_weighted(layer: Any) -> bool:
-    """A Conv*/Dense layer: the layers whose kernels are pruned, clustered and counted in the facts."""
-    from bench_matrix.sources.tensorflow import keras
-
-    k = keras()
-    conv = k.layers.Conv1D, k.layers.Conv2D, k.layers.Conv3D, k.layers.Conv2DTranspose
-    return isinstance(layer, (*conv, k.layers.Dense)) and not isinstance(
-        layer, (k.layers.DepthwiseConv2D, k.layers.SeparableConv2D))
-
-
-def _kernels(model: Any, names: set[str] | None = None) -> list[np.ndarray]:
-    """Conv/Dense kernels of a plain or QAT model, or only those of the named layers. A QAT model's kernels are
-    read as the converter stores them: fake-quantised to int8 with the learned ranges (dequantised), so a PCQAT
-    centroid that rounds to 0 counts as the zero it becomes."""
-    found = []
-    for layer in model.layers:
-        inner = getattr(layer, "layer", layer)
-        if not _is_weighted(inner) or (names is not None and inner.name not in names):
-            continue
-        # A QuantizeWrapper's `_weight_vars` hold (variable, quantizer, quantizer variables); in inference mode
-        # the quantizer applies the ranges the converter uses.
-        quantized = [quantizer(var, training=False, weights=qvars)
-                     for var, quantizer, qvars in getattr(layer, "_weight_vars", ()) if "kernel" in var.name]
-        found.append(np.asarray(quantized[0] if quantized else inner.kernel.numpy()))
-    return found
-
-
 def _phase_epochs(phase: str, kind: str, options: dict[str, Any]) -> float:
     """A phase's epochs: its own option (prune_epochs, ...), else `epochs`, else the kind's default."""
     own = f"{phase}_epochs"
@@ -172,7 +112,7 @@ class TfmotTrainer(Trainer):
 
     def probe(self) -> str | None:
         try:
-            _tfmot()
+            tfmot_module()
         except Exception as exc:  # noqa: BLE001 - any import failure means it cannot run here
             return f"tensorflow-model-optimization is not importable ({exc}): pip install tensorflow-model-optimization"
         return None
@@ -250,14 +190,14 @@ class TfmotTrainer(Trainer):
             facts["target_sparsity"] = facts["prune"]["target_sparsity"]
         if "cluster" in facts:
             facts["target_clusters"] = facts["cluster"]["clusters"]
-        kernels = _kernels(model)
+        kernels = stored_kernels(model)
         facts.update(weight_stats(kernels))
         if "cluster" in facts and "qat" in facts:
             # Per-channel 8-bit quantisation scales each output channel of a conv kernel on its own, so the
             # float kernels of a CQAT model keep <= clusters values per output channel, not per tensor.
             facts["clusters_per_channel"] = max(len(np.unique(c)) for k_ in kernels for c in np.moveaxis(k_, -1, 0))
         if pruned:  # sparsity over the kernels tfmot pruned (layers below min_weights stay dense)
-            facts["pruned_kernel_sparsity"] = weight_stats(_kernels(model, pruned))["sparsity"]
+            facts["pruned_kernel_sparsity"] = weight_stats(stored_kernels(model, pruned))["sparsity"]
         out = Path(request.out_dir)
         out.mkdir(parents=True, exist_ok=True)
         if "qat" in done:
@@ -291,7 +231,7 @@ class TfmotTrainer(Trainer):
                batch: int, n_epochs: int, per_epoch: int, seed: int) -> tuple[Any, float, dict[str, Any]]:
         from bench_matrix.sources.tensorflow import keras
 
-        k, tfmot = keras(), _tfmot()
+        k, tfmot = keras(), tfmot_module()
         sp = tfmot.sparsity.keras
         total = n_epochs * per_epoch
         # Masks are updated every `frequency` steps (about 20 updates in all). The polynomial schedule reaches its
@@ -310,7 +250,7 @@ class TfmotTrainer(Trainer):
                                       frequency=frequency)
 
         min_weights = int(_option("min_weights", kind, opts))
-        sizes = {layer.name: int(np.prod(layer.kernel.shape)) for layer in model.layers if _is_weighted(layer)}
+        sizes = {layer.name: int(np.prod(layer.kernel.shape)) for layer in model.layers if is_weighted(layer)}
         names = [name for name, size in sizes.items() if size >= min_weights]
         if not names:
             raise ValueError(f"prune: no Conv/Dense kernel has min_weights ({min_weights}) weights or more (the "
@@ -344,7 +284,7 @@ class TfmotTrainer(Trainer):
                  preserve_sparsity: bool) -> tuple[Any, float, dict[str, Any]]:
         from bench_matrix.sources.tensorflow import keras
 
-        k, tfmot = keras(), _tfmot()
+        k, tfmot = keras(), tfmot_module()
         cl = tfmot.clustering.keras
         clusters = int(_option("clusters", kind, opts))
         init = _option("init", kind, opts)
@@ -354,7 +294,7 @@ class TfmotTrainer(Trainer):
             params["preserve_sparsity"] = True
 
         def wrap(layer: Any) -> Any:
-            return cl.cluster_weights(layer, **params) if _is_weighted(layer) else layer
+            return cl.cluster_weights(layer, **params) if is_weighted(layer) else layer
 
         wrapped = k.models.clone_model(model, clone_function=wrap)
         _copy_weights(model, wrapped)
@@ -366,7 +306,7 @@ class TfmotTrainer(Trainer):
              n_epochs: int, per_epoch: int, seed: int) -> tuple[Any, float, dict[str, Any]]:
         from bench_matrix.sources.tensorflow import keras
 
-        k, tfmot = keras(), _tfmot()
+        k, tfmot = keras(), tfmot_module()
         qk = tfmot.quantization.keras
         from tensorflow_model_optimization.python.core.quantization.keras.default_8bit import (
             default_8bit_quantize_registry as registry_module,
@@ -391,7 +331,7 @@ class TfmotTrainer(Trainer):
 
         annotated = k.models.clone_model(model, clone_function=annotate)
         _copy_weights(model, annotated)
-        with qk.quantize_scope(_qat_custom_objects()):
+        with qk.quantize_scope(qat_custom_objects()):
             quantized = qk.quantize_apply(annotated, scheme)
         started = init_activation_ranges(quantized, observed_ranges(model, x))
         loss = self._fit(quantized, x, y, lr, batch, n_epochs, per_epoch, seed)
