@@ -4,13 +4,15 @@ built at conversion, and sessions whose input and output stay on the GPU."""
 
 from __future__ import annotations
 
+import ctypes
+import importlib.util
 import os
 import re
 import shutil
 import sys
 import tempfile
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, redirect_stdout
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -40,7 +42,8 @@ CALIBRATION_TABLE = "calibration.flatbuffers"
 ENGINE_PRECISION = {"fp16": "_fp16", "int8": "_int8"}
 Provider = str | tuple[str, dict[str, str]]
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
-_FAILED = re.compile(r"Failed to (load library|create) .*")
+_FAILED = re.compile(r"Failed to (load|create) .*")
+TENSORRT_LIBRARIES = ("libnvinfer.", "libnvinfer_plugin.", "libnvonnxparser.")  # the provider's needs
 
 
 @dataclass(frozen=True)
@@ -173,6 +176,21 @@ def native_log() -> Iterator[list[str]]:
             said.extend(text.decode(errors="replace").splitlines())
 
 
+def preload_libraries(ort: Any) -> None:
+    """Load the CUDA, cuDNN and TensorRT libraries that pip packages installed (nvidia-*, tensorrt-cu*-libs), which
+    the loader does not search, so that the GPU providers' own libraries find them by name."""
+    if hasattr(ort, "preload_dlls"):  # ONNX Runtime 1.21+: CUDA and cuDNN from the nvidia pip packages
+        ort.preload_dlls()
+    found = importlib.util.find_spec("tensorrt_libs")  # TensorRT's pip wheels, as `import tensorrt` loads them
+    for folder in (found.submodule_search_locations or []) if found else []:
+        for library in sorted(Path(folder).glob("lib*.so.*")):
+            if library.name.startswith(TENSORRT_LIBRARIES):
+                try:
+                    ctypes.CDLL(str(library), mode=ctypes.RTLD_GLOBAL)
+                except OSError as error:
+                    print(f"Failed to load {library}: {error}")
+
+
 def open_session(model: Path, target: str, precision: str, threads: int,
                  spec: EngineSpec | None = None) -> "onnxruntime.InferenceSession":
     """A session on `target`'s provider, or RuntimeError when ONNX Runtime fell back to another one."""
@@ -186,7 +204,9 @@ def open_session(model: Path, target: str, precision: str, threads: int,
     wanted = PROVIDERS[target]
     # enable_fallback=0: ONNX Runtime would otherwise retry a failed provider on the next ones, at session creation
     # and again when a run raises EPFail (InferenceSession.run), and a cell would time another provider unnoticed.
-    with native_log() as log:
+    with native_log() as log, redirect_stdout(sys.stderr):  # preload_dlls prints what it could not load
+        if target != "cpu":
+            preload_libraries(ort)
         try:
             session = ort.InferenceSession(str(model), options, providers=providers(target, precision, spec),
                                            enable_fallback=0)

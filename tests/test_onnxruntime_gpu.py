@@ -16,14 +16,19 @@ TESTS = Path(__file__).resolve().parent
 sys.path.insert(0, str(TESTS))
 
 import tiny_models  # noqa: E402
+from bench_matrix_backends import _ort_gpu  # noqa: E402
+from bench_matrix_backends._ort_gpu import CACHE_DIR, CALIBRATION_TABLE, EngineSpec  # noqa: E402
+from bench_matrix_backends.onnxruntime import (  # noqa: E402
+    METHODS,
+    OnnxRuntimeBackend,
+    calibration_feeds,
+    feed_reader,
+)
 
 from bench_matrix import hardware  # noqa: E402
 from bench_matrix.backends.base import ConvertRequest  # noqa: E402
 from bench_matrix.matrix.spec import StrategySpec  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
-from bench_matrix_backends import _ort_gpu  # noqa: E402
-from bench_matrix_backends._ort_gpu import CACHE_DIR, CALIBRATION_TABLE, EngineSpec  # noqa: E402
-from bench_matrix_backends.onnxruntime import METHODS, OnnxRuntimeBackend, calibration_feeds, feed_reader  # noqa: E402
 
 BACKEND = OnnxRuntimeBackend()
 CPU, CUDA, TRT = "CPUExecutionProvider", "CUDAExecutionProvider", "TensorrtExecutionProvider"
@@ -165,25 +170,25 @@ def test_fallback_message_says_what_to_fix() -> None:
 
 # What onnxruntime-gpu 1.31.1 logged on a machine without CUDA's libraries (native stderr, colour codes included).
 GPU_BUILD_LOG = [
-    "\x1b[1;31m2026-11-21 11:23:53.884905785 [E:onnxruntime:Default, provider_bridge_ort.cc:2458 operator()] "
-    "/onnxruntime_src/onnxruntime/core/session/provider_bridge_ort.cc:2043 onnxruntime::Provider& "
-    "onnxruntime::ProviderLibrary::Get() [ONNXRuntimeError] : 1 : FAIL : Failed to load library "
-    "/site/onnxruntime/capi/libonnxruntime_providers_cuda.so with error: libcublasLt.so.13: cannot open shared "
-    "object file: No such file or directory",
+    ("\x1b[1;31m2026-11-21 11:23:53.884905785 [E:onnxruntime:Default, provider_bridge_ort.cc:2458 operator()] "
+     "/onnxruntime_src/onnxruntime/core/session/provider_bridge_ort.cc:2043 onnxruntime::Provider& "
+     "onnxruntime::ProviderLibrary::Get() [ONNXRuntimeError] : 1 : FAIL : Failed to load library "
+     "/site/onnxruntime/capi/libonnxruntime_providers_cuda.so with error: libcublasLt.so.13: cannot open shared "
+     "object file: No such file or directory"),
     "\x1b[m",
-    "\x1b[0;93m2026-11-21 11:23:53.884971711 [W:onnxruntime:Default, onnxruntime_pybind_state.cc:1295 "
-    "CreateExecutionProviderFactoryInstance] Failed to create CUDAExecutionProvider. Require cuDNN 9.* and CUDA "
-    "13.*. Please install all dependencies as mentioned in the GPU requirements page.\x1b[m",
+    ("\x1b[0;93m2026-11-21 11:23:53.884971711 [W:onnxruntime:Default, onnxruntime_pybind_state.cc:1295 "
+     "CreateExecutionProviderFactoryInstance] Failed to create CUDAExecutionProvider. Require cuDNN 9.* and CUDA "
+     "13.*. Please install all dependencies as mentioned in the GPU requirements page.\x1b[m"),
 ]
 
 
 def test_fallback_message_quotes_what_onnxruntime_said() -> None:
     said = _ort_gpu.ort_said(GPU_BUILD_LOG + GPU_BUILD_LOG)  # each line once
     assert said == [
-        "Failed to load library /site/onnxruntime/capi/libonnxruntime_providers_cuda.so with error: "
-        "libcublasLt.so.13: cannot open shared object file: No such file or directory",
-        "Failed to create CUDAExecutionProvider. Require cuDNN 9.* and CUDA 13.*. Please install all dependencies "
-        "as mentioned in the GPU requirements page."]
+        ("Failed to load library /site/onnxruntime/capi/libonnxruntime_providers_cuda.so with error: "
+         "libcublasLt.so.13: cannot open shared object file: No such file or directory"),
+        ("Failed to create CUDAExecutionProvider. Require cuDNN 9.* and CUDA 13.*. Please install all dependencies "
+         "as mentioned in the GPU requirements page.")]
     message = _ort_gpu.fallback_message("cuda", [CPU], [TRT, CUDA, CPU], said)
     assert message.endswith(f"; ONNX Runtime said: {said[0]} | {said[1]}")
     assert _ort_gpu.ort_said(["2026-11-21 [W:onnxruntime:, graph.cc:5777] Removing initializer 'w'."]) == []
@@ -207,6 +212,28 @@ def test_sessions_never_fall_back_and_onnxruntime_log_is_collected(tmp_path: Pat
     assert any("Removing initializer 'never_read'" in line for line in log)
     assert "Removing initializer 'never_read'" in capfd.readouterr().err
     assert session._enable_fallback is False  # ONNX Runtime has no public getter for it
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="reads the process's mapped files (Linux)")
+def test_tensorrt_libraries_of_the_pip_wheel_are_preloaded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The libraries in the tensorrt_libs package (TensorRT's pip wheel) that the provider needs are loaded before a
+    GPU session opens, others in it are not. Stand-ins: copies of the zlib this Python already maps."""
+    import zlib  # noqa: F401 - maps libz
+
+    import onnxruntime as ort
+
+    maps = Path("/proc/self/maps")
+    libz = next(Path(line.split()[-1]) for line in maps.read_text().splitlines() if "/libz.so" in line)
+    package = tmp_path / "tensorrt_libs"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    for name in ("libnvinfer.so.10", "libnvonnxparser.so.10", "libcudla.so.1"):
+        (package / name).write_bytes(libz.read_bytes())
+    monkeypatch.syspath_prepend(str(tmp_path))
+    _ort_gpu.preload_libraries(ort)
+    mapped = maps.read_text()
+    assert str(package / "libnvinfer.so.10") in mapped and str(package / "libnvonnxparser.so.10") in mapped
+    assert str(package / "libcudla.so.1") not in mapped
 
 
 def test_tensorrt_int8_refuses_per_channel(source: SourceModel, tmp_path: Path) -> None:
