@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup run report test bench clean
+.PHONY: setup setup-gpu run report test bench clean
 
 $(BIN)/bench-matrix: requirements.lock pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -13,6 +13,11 @@ $(BIN)/bench-matrix: requirements.lock pyproject.toml
 	touch $@
 
 setup: $(BIN)/bench-matrix
+
+# On an NVIDIA GPU machine: ONNX Runtime's CUDA and TensorRT providers (docs/gpu.md).
+setup-gpu: setup
+	$(BIN)/python -m pip uninstall --quiet --yes onnxruntime
+	$(BIN)/python -m pip install --quiet -r requirements-gpu.txt
 
 run: setup
 	$(BIN)/bench-matrix run matrix.yaml

@@ -328,3 +328,17 @@ def test_tensorrt_int8_engines_live_in_the_artifact(source: SourceModel, tmp_pat
     np.testing.assert_allclose(got, reference, rtol=0, atol=0.1 * float(reference.std(axis=0).min()))
     single = session.prepare(X[:1])
     np.testing.assert_array_equal(session.fetch(session.execute(single)), session.predict(X[:1]))
+
+
+def test_gpu_requirements_pin_the_releases_of_the_lock() -> None:
+    """`make setup-gpu` swaps ONNX Runtime's CPU build for the GPU build of the same release and keeps torch's pin,
+    so CPU and GPU cells measure the same library versions."""
+    def pins(name: str) -> dict[str, str]:
+        lines = (TESTS.parent / name).read_text().splitlines()
+        return {line.split("==")[0].split("[")[0].strip().lower(): line.split("==")[1].strip()
+                for line in lines if "==" in line and not line.startswith("#")}
+
+    lock, gpu = pins("requirements.lock"), pins("requirements-gpu.txt")
+    assert gpu["onnxruntime-gpu"] == lock["onnxruntime"]
+    assert gpu["torch"] == lock["torch"]
+    assert "onnxruntime" not in gpu
