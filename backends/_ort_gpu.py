@@ -5,10 +5,12 @@ built at conversion, and sessions whose input and output stay on the GPU."""
 from __future__ import annotations
 
 import ctypes
+import functools
 import importlib.util
 import os
 import re
 import shutil
+import subprocess
 import sys
 import tempfile
 from collections.abc import Iterator
@@ -43,6 +45,7 @@ ENGINE_PRECISION = {"fp16": "_fp16", "int8": "_int8"}
 Provider = str | tuple[str, dict[str, str]]
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
 _FAILED = re.compile(r"Failed to (load|create) .*")
+_MISSING = re.compile(r"(\S+\.so[.\d]*): cannot open shared object file")
 TENSORRT_LIBRARIES = ("libnvinfer.", "libnvinfer_plugin.", "libnvonnxparser.")  # the provider's needs
 
 
@@ -116,7 +119,50 @@ def probe_reasons(target: str, precision: str) -> list[str]:
 
     # onnxruntime.cuda_version: the CUDA version a GPU build targets, from capi/build_and_package_info.py
     # (onnxruntime_validation.get_package_name_and_version_info); empty in CPU builds.
-    return gpu_reasons(target, precision, ort.get_available_providers(), getattr(ort, "cuda_version", "") or None)
+    built_for = getattr(ort, "cuda_version", "") or None
+    reasons = gpu_reasons(target, precision, ort.get_available_providers(), built_for)
+    if not reasons:  # everything else is in place: can the providers' own libraries load?
+        wanted = [PROVIDERS[target], PROVIDERS["cuda"]] if target == "tensorrt" else [PROVIDERS[target]]
+        reasons = list(dict.fromkeys(r for p in wanted if (r := library_reason(p, built_for))))
+    return reasons
+
+
+@functools.cache
+def library_reason(provider: str, built_for: str | None) -> str | None:
+    """The library that ONNX Runtime's shared library for `provider` links and that cannot be found here, even after
+    `preload_libraries`, as a reason with what to install; None when it loads (or cannot be checked)."""
+    import onnxruntime as ort
+
+    name = {PROVIDERS["cuda"]: "cuda", PROVIDERS["tensorrt"]: "tensorrt"}[provider]
+    library = Path(ort.__file__).parent / "capi" / f"libonnxruntime_providers_{name}.so"
+    if not library.is_file():
+        return None
+    # In a child process: loading it maps the CUDA libraries, which this (planning) process does not need.
+    code = (f"import ctypes, importlib, sys, onnxruntime; importlib.import_module({__name__!r})"
+            f".preload_libraries(onnxruntime); ctypes.CDLL(sys.argv[1])")
+    try:
+        done = subprocess.run([sys.executable, "-c", code, str(library)], capture_output=True, text=True,
+                              timeout=120, check=False)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    missing = _MISSING.search(done.stderr)
+    return missing_library_reason(provider, missing.group(1), built_for) if missing else None
+
+
+def missing_library_reason(provider: str, soname: str, built_for: str | None) -> str:
+    """What to install when `provider`'s library cannot find `soname` (e.g. 'libnvinfer.so.10')."""
+    cuda = (built_for or "").split(".")[0]
+    if soname.startswith("libcuda.so"):
+        fix = "it is the NVIDIA driver's library: install the driver"
+    elif soname.startswith(("libnvinfer", "libnvonnxparser")):
+        release = soname.rsplit(".so.", 1)[-1]
+        fix = f"it is TensorRT {release}'s: pip install 'tensorrt-cu{cuda}-libs=={release}.*'"
+    elif soname.startswith("libcudnn"):
+        fix = "it is cuDNN's: pip install 'onnxruntime-gpu[cudnn]' (the same onnxruntime-gpu version)"
+    else:
+        fix = (f"it is one of CUDA {built_for}'s: pip install 'onnxruntime-gpu[cuda,cudnn]' (the same "
+               f"onnxruntime-gpu version)")
+    return f"{package()} has {provider}, but its library needs {soname}, which is not installed: {fix}"
 
 
 def gpu_reasons(target: str, precision: str, available: list[str], built_for: str | None) -> list[str]:

@@ -194,6 +194,31 @@ def test_fallback_message_quotes_what_onnxruntime_said() -> None:
     assert _ort_gpu.ort_said(["2026-11-21 [W:onnxruntime:, graph.cc:5777] Removing initializer 'w'."]) == []
 
 
+@pytest.mark.parametrize(("error", "fix"), [
+    ("libcuda.so.1: cannot open shared object file: No such file or directory", "the NVIDIA driver's library"),
+    ("libnvinfer.so.10: cannot open shared object file", "TensorRT 10's: pip install 'tensorrt-cu13-libs==10.*'"),
+    ("libcudnn.so.9: cannot open shared object file", "cuDNN's: pip install 'onnxruntime-gpu[cudnn]'"),
+    ("libcublasLt.so.13: cannot open shared object file", "CUDA 13.0's: pip install 'onnxruntime-gpu[cuda,cudnn]'"),
+])
+def test_a_library_the_provider_cannot_find_is_a_reason_with_its_fix(error: str, fix: str) -> None:
+    """The loader's words (as onnxruntime-gpu 1.31.1's provider libraries gave them on a machine without CUDA)
+    become the probe reason: which library is missing and what installs it."""
+    soname = _ort_gpu._MISSING.search(f"OSError: /site/capi/libonnxruntime_providers_cuda.so: {error}").group(1)
+    assert soname == error.split(":")[0]
+    reason = _ort_gpu.missing_library_reason(CUDA, soname, "13.0")
+    assert f"has {CUDA}, but its library needs {soname}, which is not installed: it is " in reason
+    assert reason.endswith(fix) or fix in reason
+
+
+def test_provider_libraries_are_not_checked_where_the_build_has_none() -> None:
+    import onnxruntime as ort
+
+    library = Path(ort.__file__).parent / "capi" / "libonnxruntime_providers_cuda.so"
+    if library.exists():
+        pytest.skip("a GPU build of onnxruntime is installed")
+    assert _ort_gpu.library_reason(CUDA, None) is None
+
+
 def test_sessions_never_fall_back_and_onnxruntime_log_is_collected(tmp_path: Path,
                                                                    capfd: pytest.CaptureFixture[str]) -> None:
     """Sessions are opened with ONNX Runtime's provider fallback off, and what its C++ logger writes to stderr is
