@@ -13,7 +13,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager, redirect_stdout
 from dataclasses import dataclass
 from pathlib import Path
@@ -179,7 +179,7 @@ def gpu_reasons(target: str, precision: str, available: list[str], built_for: st
     return reasons
 
 
-def fallback_message(target: str, got: list[str], available: list[str], said: list[str] = ()) -> str:
+def fallback_message(target: str, got: list[str], available: list[str], said: Sequence[str] = ()) -> str:
     """Why a session that should run on `target`'s provider runs on `got` instead, and what to fix; `said` is what
     ONNX Runtime logged about it (`ort_said`)."""
     wanted = PROVIDERS[target]
@@ -197,7 +197,7 @@ def ort_said(log: list[str]) -> list[str]:
     return list(dict.fromkeys(m.group(0).strip() for m in found if m))
 
 
-def _quoted(said: list[str]) -> str:
+def _quoted(said: Sequence[str]) -> str:
     return f"; ONNX Runtime said: {' | '.join(said)}" if said else ""
 
 
@@ -250,24 +250,21 @@ def open_session(model: Path, target: str, precision: str, threads: int,
     wanted = PROVIDERS[target]
     # enable_fallback=0: ONNX Runtime would otherwise retry a failed provider on the next ones, at session creation
     # and again when a run raises EPFail (InferenceSession.run), and a cell would time another provider unnoticed.
-    with native_log() as log, redirect_stdout(sys.stderr):  # preload_dlls prints what it could not load
-        if target != "cpu":
-            preload_libraries(ort)
-        try:
+    log: list[str] = []
+    try:
+        with native_log() as log, redirect_stdout(sys.stderr):  # preload_dlls prints what it could not load
+            if target != "cpu":
+                preload_libraries(ort)
             session = ort.InferenceSession(str(model), options, providers=providers(target, precision, spec),
                                            enable_fallback=0)
-        except Exception as error:  # noqa: BLE001 - ORT raises its own Fail and EPFail types
-            failed: Exception | None = error
-        else:
-            failed = None
-    said = ort_said(log)
-    if failed is not None:
+    except Exception as error:  # ORT raises its own Fail and EPFail types
         if target == "cpu":
-            raise failed
+            raise
         raise RuntimeError(f"ONNX Runtime could not open a session on {wanted} (target {target}): "
-                           f"{str(failed).strip()}{_quoted(said)}") from failed
+                           f"{str(error).strip()}{_quoted(ort_said(log))}") from error
     if session.get_providers()[0] != wanted:
-        raise RuntimeError(fallback_message(target, session.get_providers(), ort.get_available_providers(), said))
+        raise RuntimeError(fallback_message(target, session.get_providers(), ort.get_available_providers(),
+                                            ort_said(log)))
     return session
 
 
