@@ -47,6 +47,10 @@ _ANSI = re.compile(r"\x1b\[[0-9;]*m")
 _FAILED = re.compile(r"Failed to (load|create) .*")
 _MISSING = re.compile(r"(\S+\.so[.\d]*): cannot open shared object file")
 TENSORRT_LIBRARIES = ("libnvinfer.", "libnvinfer_plugin.", "libnvonnxparser.")  # the provider's needs
+# fp32 means IEEE fp32: the CUDA provider's use_tf32 defaults to 1, and then its fp32 Conv and MatMul round
+# their inputs to TF32 (10 mantissa bits, as fp16). Seen on an H100: "fp32" outputs 1e-3 from the CPU's, as
+# far as fp16's.
+CUDA_OPTIONS = {"use_tf32": "0"}
 
 
 @dataclass(frozen=True)
@@ -79,7 +83,7 @@ def providers(target: str, precision: str, spec: EngineSpec | None = None) -> li
     """The provider list of a session for `target`: nodes a GPU provider lacks run on the next one."""
     if target == "cpu":
         return [PROVIDERS["cpu"]]
-    gpu: list[Provider] = [PROVIDERS["cuda"], PROVIDERS["cpu"]]
+    gpu: list[Provider] = [(PROVIDERS["cuda"], dict(CUDA_OPTIONS)), PROVIDERS["cpu"]]
     if target == "cuda":
         return gpu
     if spec is None:
@@ -265,7 +269,19 @@ def open_session(model: Path, target: str, precision: str, threads: int,
     if session.get_providers()[0] != wanted:
         raise RuntimeError(fallback_message(target, session.get_providers(), ort.get_available_providers(),
                                             ort_said(log)))
+    if target != "cpu" and (in_force := cuda_options(session)) != CUDA_OPTIONS:
+        raise RuntimeError(f"ONNX Runtime's {PROVIDERS['cuda']} runs with {in_force}, not {CUDA_OPTIONS}: "
+                           f"its fp32 would not be IEEE fp32")
     return session
+
+
+def cuda_options(session: "onnxruntime.InferenceSession") -> dict[str, str]:
+    """The CUDA provider's options in force in `session` that bench-matrix sets (CUDA_OPTIONS' keys); none
+    without that provider."""
+    if PROVIDERS["cuda"] not in session.get_providers():
+        return {}
+    in_force = session.get_provider_options()[PROVIDERS["cuda"]]
+    return {key: in_force.get(key, "unset") for key in CUDA_OPTIONS}
 
 
 def write_calibration_table(model: Path, reader: "CalibrationDataReader", method: str, cache_dir: Path) -> int:
@@ -339,4 +355,4 @@ class DeviceSession(Session):
     def info(self) -> dict[str, Any]:
         return {"providers": self._session.get_providers(),
                 "threads": self._session.get_session_options().intra_op_num_threads,
-                "io_binding": f"{self._device}:0"}
+                "io_binding": f"{self._device}:0", **cuda_options(self._session)}

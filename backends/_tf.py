@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib.util
+
 from bench_matrix import hardware
 from bench_matrix.measure.env import installed_versions
 
@@ -13,9 +15,19 @@ def tf_versions(*extra: str) -> dict[str, str]:
     return installed_versions(*DISTRIBUTIONS, *extra)
 
 
+def missing_tensorflow() -> str | None:
+    """Why TensorFlow cannot be imported here, without importing it, or None."""
+    if importlib.util.find_spec("tensorflow") is None:
+        return ("TensorFlow is not installed: `make setup` installs tensorflow-cpu and tf_keras as "
+                "requirements.lock pins them (a GPU build: docs/gpu.md)")
+    return None
+
+
 def probe_tensorflow_gpu() -> str | None:
     """Why TensorFlow cannot run on an NVIDIA GPU here (every missing piece), or None."""
     reasons = [reason] if (reason := hardware.no_gpu_reason()) else []
+    if missing := missing_tensorflow():
+        return "; ".join([*reasons, missing])
     from bench_matrix.sources.tensorflow import tensorflow
 
     tf = tensorflow()
@@ -37,6 +49,8 @@ def probe_tftrt(precision: str = "fp32") -> str | None:
     reasons = [reason] if (reason := probe_tensorflow_gpu()) else []
     if too_old := hardware.precision_reason(precision, f"TF-TRT {precision.upper()}"):
         reasons.append(too_old)
+    if missing_tensorflow():
+        return "; ".join(reasons)
     from bench_matrix.sources.tensorflow import tensorflow
 
     tf = tensorflow()

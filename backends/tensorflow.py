@@ -14,7 +14,7 @@ from bench_matrix.matrix.expand import conversion_step
 from bench_matrix.sources import SourceModel
 from bench_matrix.sources.tensorflow import tensorflow, thread_settings
 
-from ._tf import probe_tensorflow_gpu, tf_versions
+from ._tf import missing_tensorflow, probe_tensorflow_gpu, tf_versions
 
 if TYPE_CHECKING:
     import tensorflow as tf
@@ -36,7 +36,7 @@ class TensorFlowBackend(Backend):
         return tf_versions()
 
     def probe(self, target: str, precision: str) -> str | None:
-        return None if target == "cpu" else probe_tensorflow_gpu()
+        return missing_tensorflow() if target == "cpu" else probe_tensorflow_gpu()
 
     def convert(self, request: ConvertRequest) -> dict[str, Any]:
         """Copy the source model (a file, or a SavedModel directory) into the artifact unchanged."""

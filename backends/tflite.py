@@ -16,7 +16,7 @@ from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.sources.tensorflow import tensorflow
 
 from ._common import calibration_data
-from ._tf import tf_versions
+from ._tf import missing_tensorflow, tf_versions
 
 FILE = "model.tflite"
 KERAS_FORMATS = ("keras", "h5", "saved_model", "keras_qat")
@@ -33,6 +33,9 @@ class TFLiteBackend(Backend):
 
     def versions(self) -> dict[str, str]:
         return tf_versions("ai-edge-litert")
+
+    def probe(self, target: str, precision: str) -> str | None:
+        return missing_tensorflow()  # TFLiteConverter is TensorFlow's
 
     def option_reason(self, step: StrategySpec, source_format: str) -> str | None:
         """Keras sources only; per-channel weights and min/max calibration are what TFLite's converter does."""

@@ -311,3 +311,21 @@ print(json.dumps({{"heavy": heavy, "torch": "torch" in sys.modules, "versions": 
     assert result["heavy"] == [] and result["torch"] is False
     assert {"onnxruntime", "onnx"} <= set(result["versions"])
     np.testing.assert_allclose(result["y"], reference, rtol=0, atol=_atol("int8", reference))
+
+
+def test_tensorflow_backends_skip_where_tensorflow_is_missing(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Seen on a GPU machine with torch alone: the probes raised ModuleNotFoundError ("probing tensorflow for
+    cuda/fp32 failed") and a TensorFlow model's preparation failed, instead of its cells being skipped."""
+    import importlib.util
+
+    from bench_matrix_backends.tensorflow import KerasPredictBackend, TensorFlowBackend
+    from bench_matrix_backends.tflite import TFLiteBackend
+    from bench_matrix_backends.tftrt import TFTRTBackend
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "tensorflow"
+                        else find_spec(name, *a))
+    for backend in (TensorFlowBackend(), KerasPredictBackend(), TFLiteBackend(), TFTRTBackend()):
+        for target in sorted({t for support in backend.supports for t in support.targets}):
+            reason = backend.probe(target, "fp32")
+            assert "TensorFlow is not installed: `make setup` installs" in (reason or ""), backend.name

@@ -33,6 +33,7 @@ from bench_matrix.sources import SourceModel  # noqa: E402
 BACKEND = OnnxRuntimeBackend()
 CPU, CUDA, TRT = "CPUExecutionProvider", "CUDAExecutionProvider", "TensorrtExecutionProvider"
 TRT_INT8 = BACKEND.probe("tensorrt", "int8")
+TOLERANCE = {"fp32": 1e-5, "fp16": 1e-2}  # of the largest |output|: IEEE fp32's rounding, fp16's
 OLD_GPU = hardware.Gpu("Tesla M60", "470.57.02", 8129, (5, 2))
 
 
@@ -69,7 +70,8 @@ def _read_table(path: Path) -> dict[str, float]:
 
 
 @pytest.mark.parametrize(("target", "precision", "expected"), [
-    ("cpu", "fp32", [CPU]), ("cpu", "int8", [CPU]), ("cuda", "fp32", [CUDA, CPU]), ("cuda", "fp16", [CUDA, CPU])])
+    ("cpu", "fp32", [CPU]), ("cpu", "int8", [CPU]), ("cuda", "fp32", [(CUDA, {"use_tf32": "0"}), CPU]),
+    ("cuda", "fp16", [(CUDA, {"use_tf32": "0"}), CPU])])
 def test_cpu_and_cuda_provider_lists(target: str, precision: str, expected: list[str]) -> None:
     assert _ort_gpu.providers(target, precision) == expected
 
@@ -78,7 +80,7 @@ def test_cpu_and_cuda_provider_lists(target: str, precision: str, expected: list
 def test_tensorrt_options_keep_engines_and_table_in_the_artifact(precision: str, tmp_path: Path) -> None:
     artifact = tmp_path / "artifact"
     spec = EngineSpec("input", (3, 66, 200), 32, artifact / CACHE_DIR, precision == "int8", tmp_path / "timing")
-    (name, options), cuda, cpu = _ort_gpu.providers("tensorrt", precision, spec)
+    (name, options), (cuda, cuda_options), cpu = _ort_gpu.providers("tensorrt", precision, spec)
     expected = {"trt_fp16_enable": str(precision == "fp16"), "trt_int8_enable": str(precision == "int8"),
                 "trt_engine_cache_enable": "True", "trt_engine_cache_path": str(artifact / CACHE_DIR),
                 "trt_timing_cache_enable": "True", "trt_timing_cache_path": str(tmp_path / "timing"),
@@ -88,7 +90,7 @@ def test_tensorrt_options_keep_engines_and_table_in_the_artifact(precision: str,
         expected |= {"trt_int8_calibration_table_name": CALIBRATION_TABLE,
                      "trt_int8_use_native_calibration_table": "False"}
     assert (name, cuda, cpu) == (TRT, CUDA, CPU)
-    assert options == expected
+    assert options == expected and cuda_options == {"use_tf32": "0"}
     with pytest.raises(ValueError, match="EngineSpec"):
         _ort_gpu.providers("tensorrt", precision)
 
@@ -326,6 +328,27 @@ def test_device_session_binds_the_batch_once_and_copies_the_output_back(source: 
         np.testing.assert_array_equal(got, expected)
     np.testing.assert_array_equal(device.predict(X[:3]), expected[:3])
     assert device.info() == {"providers": [CPU], "threads": 1, "io_binding": "cpu:0"}
+
+
+def _cuda(precision: str) -> Any:
+    """A CUDA provider case, skipped with the backend's own probe reason where it cannot run."""
+    reason = BACKEND.probe("cuda", precision)
+    skip = pytest.mark.skipif(reason is not None, reason=reason or "")
+    return pytest.param(precision, marks=[pytest.mark.gpu, skip])
+
+
+@pytest.mark.parametrize("precision", [_cuda("fp32"), _cuda("fp16")])
+def test_cuda_provider_fp32_is_ieee_and_fp16_close(precision: str, source: SourceModel, reference: np.ndarray,
+                                                  tmp_path: Path) -> None:
+    """With use_tf32 at its default the provider's fp32 Conv and MatMul ran in TF32 on an H100 (1e-3 from the
+    CPU's outputs, as far as fp16's); bench-matrix switches it off, and the session says so."""
+    out = tmp_path / "model"
+    meta = BACKEND.convert(_request(source, out, precision=precision, target="cuda"))
+    session = BACKEND.load(out, json.loads(json.dumps(meta)), "cuda", precision, 1)
+    info = session.info()
+    assert info["providers"][0] == CUDA and info["io_binding"] == "cuda:0" and info["use_tf32"] == "0"
+    atol = TOLERANCE[precision] * float(np.abs(reference).max())
+    np.testing.assert_allclose(session.predict(X), reference, rtol=0, atol=atol)
 
 
 @pytest.mark.gpu

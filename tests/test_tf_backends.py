@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+pytest.importorskip("tensorflow")  # the module probes TF-TRT at import (a GPU machine may have torch alone)
 TESTS = Path(__file__).resolve().parent
 sys.path.insert(0, str(TESTS))
 
