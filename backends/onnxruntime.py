@@ -15,6 +15,8 @@ from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
 from bench_matrix.matrix.expand import QAT_KINDS, backend_kind
 from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.measure.env import installed_versions
+from bench_matrix.sources import ModelFileError
+from bench_matrix.sources.onnx_file import load_onnx
 
 from ._common import CALIBRATION_BATCH, batches, calibration_data, static_options_reason
 from ._ort_gpu import CACHE_DIR, CALIBRATION_TABLE, DISTRIBUTIONS, DeviceSession, EngineSpec, build_engines, \
@@ -74,7 +76,7 @@ class OnnxRuntimeBackend(Backend):
         engines = None
         with tempfile.TemporaryDirectory(prefix="bench-matrix-ort-") as tmp:
             model = _fp32_model(request, Path(tmp))
-            input_name, batch = _single_input(model, request.source.path)
+            input_name, batch = _single_input(model, request.source.label)
             quantisation = None
             if request.target == "tensorrt":  # TensorRT builds its fp16 and int8 engines from the fp32 model
                 onnx.save(model, str(out))
@@ -134,8 +136,8 @@ def _fp32_model(request: ConvertRequest, tmp: Path) -> "onnx.ModelProto":
     import onnx
 
     source = request.source
-    if source.framework == "onnx":
-        return onnx.load(str(source.load()))  # external data, if any, is read in too
+    if source.framework == "onnx":  # checked, external data read in from the model's directory only
+        return load_onnx(source.path, source.label)
     kept = request.shared_dir / "fp32.onnx" if request.shared_dir else None
     if kept and kept.is_file():
         return onnx.load(str(kept))
@@ -179,13 +181,14 @@ def _keras_to_onnx(request: ConvertRequest) -> "onnx.ModelProto":
     return model
 
 
-def _single_input(model: "onnx.ModelProto", path: Path) -> tuple[str, int | None]:
+def _single_input(model: "onnx.ModelProto", label: str) -> tuple[str, int | None]:
     """The name of the model's one input and its fixed batch size (None when the batch axis is dynamic)."""
     initializers = {init.name for init in model.graph.initializer}
     inputs = [i for i in model.graph.input if i.name not in initializers]
     if len(inputs) != 1:
-        raise ValueError(f"{path}: the model has {len(inputs)} inputs ({', '.join(i.name for i in inputs)}); "
-                         f"bench-matrix feeds exactly one image tensor")
+        names = ", ".join(i.name for i in inputs)
+        raise ModelFileError(f"{label}: the model has {len(inputs)} inputs ({names}); bench-matrix feeds "
+                             f"exactly one image tensor: export a model with one input")
     dims = inputs[0].type.tensor_type.shape.dim
     return inputs[0].name, (dims[0].dim_value or None) if dims else None
 

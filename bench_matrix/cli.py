@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -21,6 +22,7 @@ def main(argv: list[str] | None = None) -> int:
     if not console.is_terminal:  # logs and pipes: wide enough that tables do not fold every cell
         console = Console(width=max(console.width, 160))
     try:
+        _check_paths(args)
         return args.handler(args, console)
     except MatrixError as exc:
         errors.print(f"[bold red]error:[/] {len(exc.problems)} problem(s) in the matrix file:", highlight=False)
@@ -89,7 +91,45 @@ def _selected(args: argparse.Namespace):
         given = getattr(args, key)
         if given:
             values[key] = frozenset(v.strip() for item in given for v in item.split(",") if v.strip())
+            if not values[key]:
+                raise UserError(f"--{key} {','.join(given)!r}: give at least one {key} (several: separate "
+                                f"them with commas)")
     return Filters(values)
+
+
+def _check_paths(args: argparse.Namespace) -> None:
+    """Check --workspace, --results and --out before anything runs: one message naming the option and path."""
+    if args.command == "schema":
+        return
+    if args.command != "report" or args.results is None:
+        _check_folder("--workspace", args.workspace, "for caches, logs and results")
+    if args.command in ("plan", "report"):
+        _check_results(args)
+    if args.command == "report" and args.format != "json":
+        _check_folder("--out", args.out, "the report's pages are written to")
+
+
+def _check_folder(option: str, folder: Path, purpose: str) -> None:
+    """A folder the command writes into: not a file; it, or the nearest folder it would be made in, is
+    writable."""
+    if folder.exists() and not folder.is_dir():
+        raise UserError(f"{option} {folder}: is a file; {option} names a folder ({purpose})")
+    existing = next(p for p in (folder, *folder.absolute().parents) if p.exists())
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise UserError(f"{option} {folder}: cannot write there ({existing} is not a writable folder)")
+
+
+def _check_results(args: argparse.Namespace) -> None:
+    """plan and report only read a results file: an explicit one must exist, any existing one be a store."""
+    from bench_matrix.store import ResultStore
+
+    path = args.results or args.workspace / "results.sqlite"
+    label = "--results" if args.results else "results file"
+    if args.results and not os.path.lexists(args.results):
+        raise UserError(f"--results {path}: no such file; `bench-matrix run MATRIX --results {path}` "
+                        f"writes one")
+    if os.path.lexists(path):
+        ResultStore(path, readonly=True, label=label).close()
 
 
 def _load(args: argparse.Namespace):
@@ -105,12 +145,15 @@ def _run(args: argparse.Namespace, console) -> int:
     from bench_matrix.store import ResultStore
 
     matrix, ws = _load(args)
+    filters = _selected(args)
+    if args.results is None:
+        ws.root.mkdir(parents=True, exist_ok=True)  # checked writable before
+    store = ResultStore(args.results or ws.results, label="--results" if args.results else "results file")
     console.print(f"[bold]bench-matrix {__version__}[/] · {matrix.path} · results in "
                   f"{args.results or ws.results}", highlight=False)
-    planned = resolve(matrix, ws)
-    store = ResultStore(args.results or ws.results)
     try:
-        counts = Runner(matrix, ws, store, console).run(planned, _selected(args), args.force)
+        planned = resolve(matrix, ws)
+        counts = Runner(matrix, ws, store, console).run(planned, filters, args.force)
     finally:
         store.close()
     invalid = len(planned.expansion.by_state("invalid"))
@@ -126,7 +169,8 @@ def _plan(args: argparse.Namespace, console) -> int:
     from bench_matrix.runner import resolve
 
     matrix, ws = _load(args)
-    show_plan(console, matrix, ws, resolve(matrix, ws), _selected(args), args.results, args.show_all)
+    filters = _selected(args)
+    show_plan(console, matrix, ws, resolve(matrix, ws), filters, args.results, args.show_all)
     return 0
 
 

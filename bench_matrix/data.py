@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 from dataclasses import asdict, dataclass
@@ -11,12 +10,13 @@ from typing import Any
 
 import numpy as np
 
+from bench_matrix.data_readers import read_folders, read_npz, refuse_non_finite, require_file
 from bench_matrix.errors import UserError
 from bench_matrix.matrix.spec import DatasetSpec, Preprocess
 from bench_matrix.workspace import Workspace, digest, tree_sha256
 
 SPLITS = ("train", "calibration", "test")
-IMAGE_SUFFIXES = ("", ".png", ".jpg", ".jpeg")
+CROP_SIDES = ("top", "bottom", "left", "right")
 
 
 @dataclass(frozen=True)
@@ -31,8 +31,19 @@ class Raw:
 
 def fingerprint(spec: DatasetSpec) -> str:
     """Content hash of the dataset: its declaration plus the bytes of its files."""
-    content = tree_sha256(list(spec.paths)) if spec.paths else "builtin"
+    if spec.kind == "npz":
+        require_file(spec.paths[0], "an .npz archive")  # never open a pipe or a directory to hash it
+    try:
+        content = tree_sha256(list(spec.paths)) if spec.paths else "builtin"
+    except OSError as exc:
+        raise UserError(f"{exc.filename or source(spec)}: cannot be read ({exc.strerror or exc}); "
+                        f"every dataset file must be readable") from None
     return digest({"spec": asdict(spec), "content": content, "format": 1})
+
+
+def source(spec: DatasetSpec) -> str:
+    """The user's dataset as named in messages: its file or folders."""
+    return ", ".join(map(str, spec.paths)) or f"the builtin dataset ({spec.samples} samples)"
 
 
 def prepare(spec: DatasetSpec, workspace: Workspace) -> tuple[Path, dict[str, Any]]:
@@ -41,8 +52,9 @@ def prepare(spec: DatasetSpec, workspace: Workspace) -> tuple[Path, dict[str, An
     if (out / "info.json").is_file():
         return out, json.loads((out / "info.json").read_text())
     raw = _read(spec)
-    y = _normalise(raw.labels, spec)
-    index = assign_splits(len(y), raw.groups, spec.split, spec.seed)
+    _check_channels(spec.preprocess, raw.images.shape[-1], source(spec))
+    y = _normalise(raw.labels, raw.columns, spec)
+    index = assign_splits(len(y), raw.groups, spec.split, spec.seed, source(spec))
     out.mkdir(parents=True, exist_ok=True)
     for name, idx in index.items():
         np.save(out / f"{name}_x.npy", raw.images[idx])
@@ -53,7 +65,8 @@ def prepare(spec: DatasetSpec, workspace: Workspace) -> tuple[Path, dict[str, An
         "fingerprint": out.name, "kind": spec.kind, "sample_shape": list(raw.images.shape[1:]),
         "label_columns": list(raw.columns), "counts": {k: int(len(v)) for k, v in index.items()},
         "split_by": _split_method(raw.groups, spec.split.by),
-        "groups": {k: sorted({int(g) for g in raw.groups[v]}) for k, v in index.items()} if raw.groups is not None else None,
+        "groups": ({k: sorted({int(g) for g in raw.groups[v]}) for k, v in index.items()}
+                   if raw.groups is not None else None),
         "train_label_mean": train_mean.tolist(),
         "mean_predictor_mse": float(np.mean((test_y - train_mean) ** 2)),
     }
@@ -85,20 +98,25 @@ def geometric(image: np.ndarray, preprocess: Preprocess) -> np.ndarray:
     """Crop then resize one (H,W,C) image; the same function serves every split."""
     if preprocess.crop is not None:
         top, bottom, left, right = preprocess.crop
-        image = image[top:bottom, left:right]
+        cropped = image[top:bottom, left:right]
+        if 0 in cropped.shape[:2]:
+            bounds = ", ".join(f"{side}: {value}" for side, value in zip(CROP_SIDES, preprocess.crop)
+                               if value is not None)
+            raise UserError(f"dataset.preprocess.crop {{{bounds}}} leaves no pixels of a {image.shape[1]}×"
+                            f"{image.shape[0]} image (width×height); crop bounds are row and column indices")
+        image = cropped
     if preprocess.resize is not None and tuple(image.shape[:2]) != tuple(preprocess.resize):
         from PIL import Image
 
         h, w = preprocess.resize
-        if image.dtype == np.uint8:
-            image = np.asarray(Image.fromarray(image).resize((w, h), Image.BILINEAR))
-        else:
-            image = np.stack([np.asarray(Image.fromarray(image[..., c].astype(np.float32), mode="F")
-                                         .resize((w, h), Image.BILINEAR)) for c in range(image.shape[2])], -1)
+        mode, dtype = ("L", np.uint8) if image.dtype == np.uint8 else ("F", np.float32)
+        image = np.stack([np.asarray(Image.fromarray(image[..., c].astype(dtype), mode=mode)
+                                     .resize((w, h), Image.BILINEAR)) for c in range(image.shape[2])], -1)
     return image
 
 
-def assign_splits(n: int, groups: np.ndarray | None, split: Any, seed: int) -> dict[str, np.ndarray]:
+def assign_splits(n: int, groups: np.ndarray | None, split: Any, seed: int,
+                  where: str) -> dict[str, np.ndarray]:
     """Disjoint train/calibration/test indices: whole groups, contiguous blocks, or a seeded shuffle."""
     fractions = np.array([split.train, split.calibration, split.test])
     method = _split_method(groups, split.by)
@@ -118,8 +136,9 @@ def assign_splits(n: int, groups: np.ndarray | None, split: Any, seed: int) -> d
     bounds = np.round(np.cumsum(fractions) * n).astype(int)
     parts = np.split(order, bounds[:2])
     if any(len(p) == 0 for p in parts):
-        raise UserError(f"dataset: {n} samples are too few for the split fractions "
-                        f"{fractions.tolist()}: every split needs at least one sample")
+        raise UserError(f"{where}: {n} samples are too few for the split fractions {fractions.tolist()}: "
+                        f"every split needs at least one sample; add samples "
+                        f"({_enough_samples(fractions, n)} would do) or change dataset.split")
     return {name: np.sort(p) for name, p in zip(SPLITS, parts)}
 
 
@@ -133,12 +152,38 @@ def _split_method(groups: np.ndarray | None, by: str) -> str:
     return by
 
 
-def _normalise(labels: np.ndarray, spec: DatasetSpec) -> np.ndarray:
+def _enough_samples(fractions: np.ndarray, n: int) -> int:
+    """The next sample count above `n` for which every split gets one (1/smallest fraction always does)."""
+    surely = int(np.ceil(1 / fractions.min()))
+    ns = np.arange(n + 1, min(surely, n + 1_000_000) + 1)
+    bounds = np.round(np.outer(ns, np.cumsum(fractions))).astype(int)
+    enough = (np.diff(bounds, axis=1, prepend=0) > 0).all(axis=1)
+    return int(ns[np.argmax(enough)]) if enough.any() else surely
+
+
+def _check_channels(preprocess: Preprocess, channels: int, where: str) -> None:
+    """Refuse a per-channel mean or std whose length is neither 1 nor the images' channel count."""
+    for key in ("mean", "std"):
+        values = getattr(preprocess, key)
+        if values is not None and len(values) not in (1, channels):
+            raise UserError(f"dataset.preprocess.{key} has {len(values)} values, but the images of {where} "
+                            f"have {channels} channel(s); give one value or one per channel")
+
+
+def _normalise(labels: np.ndarray, columns: tuple[str, ...], spec: DatasetSpec) -> np.ndarray:
+    """y' = (y - offset) / scale, after checking offset and scale fit the label columns."""
     y = labels.astype(np.float32)
+    for key in ("offset", "scale"):
+        values = getattr(spec.labels, key)
+        if values is not None and len(values) not in (1, y.shape[1]):
+            raise UserError(f"dataset.labels.{key} has {len(values)} values, but {source(spec)} has "
+                            f"{y.shape[1]} label column(s) ({', '.join(columns)}); give one value or one "
+                            f"per column")
     if spec.labels.offset is not None:
         y = y - np.asarray(spec.labels.offset, np.float32)
     if spec.labels.scale is not None:
         y = y / np.asarray(spec.labels.scale, np.float32)
+    refuse_non_finite(y, f"{source(spec)}: labels after dataset.labels offset and scale", "sample")
     return y
 
 
@@ -149,64 +194,13 @@ def _read(spec: DatasetSpec) -> Raw:
         data = generate(spec.samples, seed=spec.seed, n_circuits=spec.circuits)
         images, labels, groups, columns = data.images, data.labels, data.groups, ("v", "w")
     elif spec.kind == "npz":
-        images, labels, groups, columns = _read_npz(spec.paths[0], spec.labels.columns)
+        images, labels, groups, columns = read_npz(spec.paths[0], spec.labels.columns)
     else:
-        images, labels, groups, columns = _read_folders(spec.paths, spec.labels.columns, spec.preprocess)
-        return Raw(images, labels, groups, columns)  # folders are cropped/resized while reading
+        images, labels, groups = read_folders(spec.paths, spec.labels.columns,
+                                              lambda image: geometric(image, spec.preprocess))
+        return Raw(images, labels, groups, spec.labels.columns)  # folders are cropped/resized while reading
     if images.ndim == 3:
         images = images[..., None]
     if spec.preprocess.crop is not None or spec.preprocess.resize is not None:
         images = np.stack([geometric(img, spec.preprocess) for img in images])
     return Raw(images, labels, groups, columns)
-
-
-def _read_npz(path: Path, columns: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, tuple]:
-    try:
-        archive = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise UserError(f"{path}: cannot read as .npz: {exc}") from None
-    missing = [k for k in ("x", "y") if k not in archive.files]
-    if missing:
-        raise UserError(f"{path}: missing array(s) {', '.join(missing)}; an .npz dataset needs 'x' (N,H,W[,C] "
-                        f"images) and 'y' (N[,K] labels), optionally 'groups' (N,); it has: {', '.join(archive.files)}")
-    x, y = archive["x"], archive["y"]
-    y = y.reshape(len(y), -1)
-    if len(x) != len(y) or x.ndim not in (3, 4):
-        raise UserError(f"{path}: 'x' must be (N,H,W) or (N,H,W,C) and 'y' must have N rows; "
-                        f"got x {x.shape}, y {y.shape}")
-    groups = archive["groups"] if "groups" in archive.files else None
-    names = columns if len(columns) == y.shape[1] else tuple(f"y{i}" for i in range(y.shape[1]))
-    return x, y, groups, names
-
-
-def _read_folders(folders: tuple[Path, ...], columns: tuple[str, ...],
-                  preprocess: Preprocess) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple]:
-    from PIL import Image
-
-    images, labels, groups = [], [], []
-    for g, folder in enumerate(folders):
-        with open(folder / "data.csv", newline="") as f:
-            reader = csv.DictReader(f)
-            absent = [c for c in ("image_name", *columns) if c not in (reader.fieldnames or [])]
-            if absent:
-                raise UserError(f"{folder / 'data.csv'}: missing column(s) {', '.join(absent)}; "
-                                f"header is {', '.join(reader.fieldnames or [])}")
-            for line, row in enumerate(reader, start=2):
-                image = _find_image(folder, row["image_name"])
-                if image is None:
-                    raise UserError(f"{folder / 'data.csv'}:{line}: image '{row['image_name']}' not found in {folder}")
-                try:
-                    labels.append([float(row[c]) for c in columns])
-                except ValueError:
-                    raise UserError(f"{folder / 'data.csv'}:{line}: label columns {', '.join(columns)} "
-                                    f"must be numbers") from None
-                with Image.open(image) as im:
-                    images.append(geometric(np.asarray(im.convert("RGB")), preprocess))
-                groups.append(g)
-    if not images:
-        raise UserError(f"{', '.join(map(str, folders))}: data.csv lists no images")
-    return np.stack(images), np.asarray(labels, np.float32), np.asarray(groups, np.int32), columns
-
-
-def _find_image(folder: Path, name: str) -> Path | None:
-    return next((folder / (name + s) for s in IMAGE_SUFFIXES if (folder / (name + s)).is_file()), None)

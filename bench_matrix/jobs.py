@@ -102,8 +102,13 @@ def judge_training(keys: list[list[str]]) -> dict[str, dict[str, Any]]:
 
 
 def prepare_dataset(job: dict[str, Any]) -> dict[str, Any]:
+    """Read, check, preprocess and split the user's dataset (cached); a mistake in it is a UserError."""
     phase("dataset")
-    directory, info = data.prepare(job["dataset"], Workspace(Path(job["workspace"])))
+    try:
+        directory, info = data.prepare(job["dataset"], Workspace(Path(job["workspace"])))
+    except MemoryError:
+        raise UserError(f"{data.source(job['dataset'])}: the dataset does not fit in this machine's memory; "
+                        f"use fewer samples or smaller images (dataset.preprocess.crop, resize)") from None
     return {"dir": str(directory), "info": info}
 
 
@@ -182,7 +187,7 @@ def finetune(job: dict[str, Any]) -> dict[str, Any]:
     path = final / "model" / done["file"]
     tuned = SourceModel(name=source.name, framework=source.framework, format=done["format"], path=path,
                         sha256=file_sha256(path), input_shape=source.input_shape, factory=source.factory,
-                        python_path=source.python_path)
+                        python_path=source.python_path, origin=source.origin or str(source.path))
     return {"source": tuned.to_dict(), "facts": done["facts"]}
 
 
@@ -318,9 +323,9 @@ def _params(ws: Workspace, source: SourceModel) -> int:
 
 def _count_params(source: SourceModel) -> int:
     if source.framework == "onnx":
-        import onnx
+        from bench_matrix.sources.onnx_file import load_onnx
 
-        return int(sum(np.prod(t.dims) for t in onnx.load(str(source.path)).graph.initializer))
+        return int(sum(np.prod(t.dims) for t in load_onnx(source.path, source.label).graph.initializer))
     if source.framework == "tensorflow":
         from bench_matrix.sources.tensorflow import count_params as count_keras_params
 

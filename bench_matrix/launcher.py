@@ -15,7 +15,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from bench_matrix.errors import UserError
+
 TAIL_LINES = 12
+LONGEST_WAIT_S = 1e9  # ~31 years: a longer (or infinite) limit waits as long; keeps every timer representable
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "TF_NUM_INTRAOP_THREADS")
 
 
@@ -35,6 +38,9 @@ class Outcome:
 def run_job(job: dict[str, Any], workdir: Path, log: Path, timeout_s: float, threads: int | None = None,
             on_phase: Callable[[str], None] = lambda _: None, tick: Callable[[], None] = lambda: None) -> Outcome:
     """Start `python -m bench_matrix.worker` on `job`; kill its process group at `timeout_s`."""
+    if not timeout_s > 0:  # also NaN
+        raise UserError(f"a time limit must be a positive number of seconds, got {timeout_s!r} "
+                        f"(settings.timeout_s)")
     workdir.mkdir(parents=True, exist_ok=True)
     log.parent.mkdir(parents=True, exist_ok=True)
     stem = f"job-{os.getpid()}-{time.monotonic_ns()}"
@@ -80,7 +86,7 @@ def _wait(proc: subprocess.Popen, read_fd: int, timeout_s: float, on_phase: Call
           tick: Callable[[], None]) -> tuple[bool, str]:
     """Block on the child's exit and phase messages; tick once a second except while it measures."""
     pidfd = os.pidfd_open(proc.pid)
-    deadline = time.monotonic() + timeout_s
+    deadline = time.monotonic() + min(timeout_s, LONGEST_WAIT_S)
     watched, phase = [pidfd, read_fd], "start"
     try:
         while True:

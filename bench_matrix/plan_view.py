@@ -28,7 +28,7 @@ def show_plan(console: Console, matrix: Matrix, ws: Workspace, planned: Planned,
     """Cells that will run, are stored, or are skipped (why); then the combinations that are not valid (why)."""
     filters.check([p.cell for p in planned.expansion.cells])
     results = results or ws.results
-    store = ResultStore(results) if results.is_file() else None
+    store = ResultStore(results, readonly=True) if results.is_file() else None
     runner = Runner(matrix, ws, store, console) if store else None
     cells = [p for p in planned.expansion.cells if filters.keep(p.cell)]
     table = Table(title=f"cells of {matrix.path}")

@@ -4,11 +4,18 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
+
+from bench_matrix.errors import UserError
 
 DEFAULT_ROOT = Path(".bench-matrix")
+FILE_TYPES = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a named pipe"),
+              (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+              (stat.S_ISSOCK, "a socket"))
 
 
 @dataclass(frozen=True)
@@ -49,10 +56,28 @@ def file_sha256(path: Path) -> str:
     if path.is_dir():
         return tree_sha256([path])
     h = hashlib.sha256()
-    with open(path, "rb") as f:
+    with open_regular(path) as f:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def open_regular(path: Path) -> BinaryIO:
+    """Open a regular file to read, never blocking on a named pipe; UserError for any other kind of file."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    kind = not_regular(os.fstat(fd).st_mode)
+    if kind:
+        os.close(fd)
+        raise UserError(f"{path}: is {kind}, not a regular file")
+    os.set_blocking(fd, True)
+    return os.fdopen(fd, "rb")
+
+
+def not_regular(mode: int) -> str | None:
+    """What a file of this st_mode is ('a named pipe', ...), or None for a regular file."""
+    if stat.S_ISREG(mode):
+        return None
+    return next((name for test, name in FILE_TYPES if test(mode)), "not a regular file")
 
 
 def tree_sha256(paths: list[Path]) -> str:

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from bench_matrix.errors import UserError
 from bench_matrix.launcher import run_job
 
 
@@ -47,3 +48,19 @@ def test_value_and_phases_come_back(tmp_path):
     assert phases == ["convert", "measure"]
     assert not list((tmp_path / "jobs").iterdir())  # job files are cleaned up
 
+
+
+@pytest.mark.parametrize("timeout_s", [float("inf"), 1e30, 10**400])
+def test_a_limit_too_long_for_a_timer_waits_as_long_as_needed(tmp_path, timeout_s):
+    outcome = run_job({"mode": "launcher_jobs:echo", "value": 7}, tmp_path / "jobs", tmp_path / "log.txt",
+                      timeout_s=timeout_s)
+    assert outcome.ok and outcome.value == 7
+
+
+@pytest.mark.parametrize("timeout_s", [float("nan"), 0, -1.0])
+def test_a_limit_that_is_not_a_positive_number_is_refused_before_starting(tmp_path, timeout_s):
+    with pytest.raises(UserError, match=r"a time limit must be a positive number of seconds, got .*"
+                                        r"timeout_s"):
+        run_job({"mode": "launcher_jobs:echo", "value": 7}, tmp_path / "jobs", tmp_path / "log.txt",
+                timeout_s=timeout_s)
+    assert not (tmp_path / "jobs").exists()

@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
+import os
+import sqlite3
+from contextlib import closing
+
+import pytest
+
 from bench_matrix.cell import Cell
+from bench_matrix.errors import UserError
 from bench_matrix.store import CellRecord, ResultStore
 
 CELL = Cell("m", "pytorch", "onnxruntime", "none", "fp32", "cpu")
@@ -28,3 +35,57 @@ def test_put_get_replace_and_persist(tmp_path):
     assert set(doc) >= {"cell", "status", "reason", "metrics", "artifact_path", "env", "started_at", "finished_at"}
     assert doc["cell"] == {"model": "m", "framework": "pytorch", "backend": "onnxruntime", "strategy": "none",
                            "precision": "fp32", "target": "cpu"}
+
+
+def test_read_only_open_changes_nothing(tmp_path):
+    path = tmp_path / "r.sqlite"
+    store = ResultStore(path)
+    store.put(CellRecord(CELL, "ok", fingerprint="f"))
+    store.close()
+    before = path.read_bytes()
+    reader = ResultStore(path, readonly=True, label="--results")
+    assert [r.status for r in reader.records()] == ["ok"]
+    with pytest.raises(UserError, match=r"--results .*r.sqlite: cannot write a result \(attempt to write"):
+        reader.put(CellRecord(CELL, "failed"))
+    reader.close()
+    assert path.read_bytes() == before
+
+
+def test_an_empty_file_is_an_empty_store(tmp_path):
+    path = tmp_path / "empty.sqlite"
+    path.write_bytes(b"")
+    reader = ResultStore(path, readonly=True)
+    assert reader.records() == [] and reader.get(CELL) is None and reader.facts("run") == {}
+    reader.close()
+    assert path.read_bytes() == b""  # reading did not make it a store
+    ResultStore(path).close()  # run takes it as a new store
+    assert ResultStore(path, readonly=True).records() == []
+
+
+def test_stores_of_other_versions_are_refused_with_what_to_do(tmp_path):
+    older, newer = tmp_path / "older.sqlite", tmp_path / "newer.sqlite"
+    with closing(sqlite3.connect(older)) as db:
+        db.execute("CREATE TABLE results (key TEXT PRIMARY KEY, model TEXT, status TEXT)")
+    with pytest.raises(UserError, match=r"older.sqlite: written by an older bench-matrix \(its results table "
+                                        r"lacks framework, backend, .*\); move it away or choose another"):
+        ResultStore(older, readonly=True)
+    ResultStore(newer).close()
+    with closing(sqlite3.connect(newer)) as db:
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 1  # the format is recorded
+        db.execute("PRAGMA user_version = 2")
+    for readonly in (True, False):
+        with pytest.raises(UserError, match=r"written by a newer bench-matrix \(results format 2; this one "
+                                            r"reads 1\): upgrade bench-matrix"):
+            ResultStore(newer, readonly=readonly)
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda p: p.mkdir(), r"is a directory; give a file name such as .*/results.sqlite"),
+    (lambda p: os.mkfifo(p), "is a named pipe, not a results file"),
+    (lambda p: p.write_text("key,status\n"), "not a bench-matrix results store: it is not an SQLite "),
+])
+def test_what_is_not_a_results_file_is_refused_unopened(tmp_path, make, message):
+    make(tmp_path / "r.sqlite")
+    for readonly in (True, False):
+        with pytest.raises(UserError, match=rf"results file .*r.sqlite: {message}"):
+            ResultStore(tmp_path / "r.sqlite", readonly=readonly)

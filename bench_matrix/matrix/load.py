@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import difflib
+import math
+import stat
 from pathlib import Path
 from typing import Any
 
 import jsonschema
 
 from bench_matrix.errors import MatrixError
+from bench_matrix.matrix import paths
 from bench_matrix.matrix.schema import BUILTIN_FRAMEWORKS, BUILTIN_MODELS, CELL_KEYS, FRAMEWORKS, PRECISIONS, SCHEMA, STRATEGY_KINDS, TARGETS
 from bench_matrix.matrix.spec import (
     DEFAULT_LAYOUT,
@@ -26,8 +29,23 @@ from bench_matrix.matrix.spec import (
     file_kind,
 )
 from bench_matrix.matrix.yamlpos import format_path, load_with_lines
+from bench_matrix.workspace import not_regular
 
 DRIVING_LABELS = LabelSpec(columns=("v", "w"), offset=(6.5, -7.1), scale=(17.5, 14.2))
+
+
+def _is_integer(_checker: Any, value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)  # 2.0 and True are not counts
+
+
+def _is_number(_checker: Any, value: Any) -> bool:
+    return _is_integer(_checker, value) or (isinstance(value, float) and math.isfinite(value))
+
+
+StrictValidator = jsonschema.validators.extend(
+    jsonschema.Draft202012Validator,
+    type_checker=jsonschema.Draft202012Validator.TYPE_CHECKER.redefine_many(
+        {"integer": _is_integer, "number": _is_number}))
 
 
 def suggest(word: str, allowed: list[str] | tuple[str, ...]) -> str:
@@ -56,9 +74,11 @@ def load_matrix(path: str | Path, backends: list[str] | None = None) -> Matrix:
     report = _Located(path, lines)
     if not isinstance(data, dict):
         raise MatrixError([f"{path}:1: the top level must be a mapping with 'models', 'dataset' and 'axes'"])
-    validator = jsonschema.Draft202012Validator(SCHEMA)
-    for error in sorted(validator.iter_errors(data), key=lambda e: list(map(str, e.absolute_path))):
-        _describe(error, report)
+    errors = sorted(StrictValidator(SCHEMA).iter_errors(data), key=lambda e: list(map(str, e.absolute_path)))
+    mistyped = {tuple(e.absolute_path) for e in errors if e.validator == "type"}
+    for error in errors:  # a value of the wrong type gets one message, not also its bounds
+        if error.validator == "type" or tuple(error.absolute_path) not in mistyped:
+            _describe(error, report)
     if report.problems:
         raise MatrixError(report.problems)
     matrix = _build(path, data, lines, report, backends)
@@ -81,9 +101,12 @@ def _describe(error: jsonschema.ValidationError, report: _Located) -> None:
     elif kind == "required":
         report.add(at, f"missing required key {error.message.split(' is a required')[0]}")
     elif kind == "type":
-        expected = error.validator_value
-        report.add(at, f"expected {expected if isinstance(expected, str) else ' or '.join(expected)}, "
-                       f"got {type(value).__name__} {value!r}")
+        report.add(at, _type_message(error.validator_value, value))
+    elif kind == "oneOf" and (unknown := _hidden_unknown_keys(schema, value)):
+        for key in unknown:
+            allowed = ", ".join(sorted(schema["properties"]))
+            report.add(at + (key,), f"unknown key '{key}'; allowed: {allowed} (and the options of the kind)"
+                                    f"{suggest(key, sorted(_known_keys(schema)))}")
     elif kind in ("oneOf", "pattern") and "x-message" in schema:
         report.add(at, schema["x-message"] + (f" (got {value!r})" if kind == "pattern" else ""))
     elif kind in ("minimum", "exclusiveMinimum", "maximum", "exclusiveMaximum"):
@@ -97,9 +120,36 @@ def _describe(error: jsonschema.ValidationError, report: _Located) -> None:
         report.add(at, error.message)
 
 
-def _resolve(base: Path, text: str) -> Path:
-    p = Path(text).expanduser()
-    return p if p.is_absolute() else (base / p).resolve()
+def _type_message(expected: str | list[str], value: Any) -> str:
+    names = expected if isinstance(expected, str) else " or ".join(expected)
+    got = f"got {type(value).__name__} {value!r}"
+    if isinstance(value, float) and not math.isfinite(value):
+        return f"expected a finite {names}, {got} (.nan and .inf are not allowed)"
+    if isinstance(value, float) and value.is_integer() and "integer" in expected:
+        return f"expected {names}, {got}; write it without a decimal point"
+    return f"expected {names}, {got}"
+
+
+def _known_keys(schema: dict[str, Any]) -> set[str]:
+    """Keys an object schema allows in any of its conditional branches (allOf: if/then)."""
+    branches = [b.get("then", {}).get("properties", {}) for b in schema.get("allOf", [])]
+    return set(schema.get("properties", {})).union(*branches)
+
+
+def _hidden_unknown_keys(schema: dict[str, Any], value: Any) -> list[str]:
+    """Unknown keys no other error reports: an object schema, without additionalProperties, failed oneOf."""
+    if not isinstance(value, dict) or "additionalProperties" in schema or "properties" not in schema:
+        return []
+    known = _known_keys(schema)
+    return [key for key in value if key not in known]
+
+
+def _path(base: Path, text: str, at: tuple, report: _Located) -> Path | None:
+    """The absolute path `text` names (relative: to the matrix's folder); None, reported, when it cannot."""
+    path, problem = paths.resolve(base, text)
+    if problem:
+        report.add(at, problem)
+    return path
 
 
 def _build(path: Path, data: dict[str, Any], lines: dict, report: _Located, backends: list[str] | None) -> Matrix:
@@ -133,56 +183,84 @@ def _build(path: Path, data: dict[str, Any], lines: dict, report: _Located, back
 
 def _model(base: Path, i: int, m: dict[str, Any], report: _Located) -> ModelSpec:
     at = ("models", i)
-    file = _resolve(base, m["file"]) if "file" in m else None
-    weights = _resolve(base, m["weights"]) if "weights" in m else None
+    file = _path(base, m["file"], at + ("file",), report) if "file" in m else None
+    weights = _path(base, m["weights"], at + ("weights",), report) if "weights" in m else None
     framework = m["framework"]
     if "builtin" in m and framework not in BUILTIN_FRAMEWORKS:
         report.add(at + ("framework",), f"built-in models {', '.join(BUILTIN_MODELS)} exist for "
                                         f"{' and '.join(BUILTIN_FRAMEWORKS)}, not {framework}")
     if file is not None:
-        expected = file_kind(file)
-        if not file.exists():
-            report.add(at + ("file",), f"model file not found: {file}")
-        if expected is None and file.is_dir():
-            report.add(at + ("file",), f"'{file}' is a directory without saved_model.pb: a model directory "
-                                       f"must be a TensorFlow SavedModel")
-        elif expected is None:
-            report.add(at + ("file",), f"unsupported model file '{file.name}'; allowed: files ending "
-                                       f"{', '.join(MODEL_SUFFIXES)} (TorchScript, torch.export, ONNX, Keras) "
-                                       f"or a SavedModel directory")
-        elif expected[0] != framework:
-            report.add(at + ("framework",), f"'{file.name}' is a {expected[0]} model file, but framework "
-                                            f"is '{framework}'")
+        _model_file(file, framework, at, report)
     if "factory" in m:
-        if weights is None:
+        if "weights" not in m:
             report.add(at, "'factory' needs 'weights' (a state_dict file saved with torch.save)")
-        elif not weights.is_file():
-            report.add(at + ("weights",), f"weights file not found: {weights}")
+        elif weights is not None and (problem := paths.file_problem(weights, "weights file")):
+            report.add(at + ("weights",), problem)
         if framework != "pytorch":
             report.add(at + ("framework",), "'factory' builds a pytorch module; set framework: pytorch")
-    elif weights is not None:
+    elif "weights" in m:
         report.add(at + ("weights",), "'weights' only goes with 'factory'")
     layout = m.get("layout", DEFAULT_LAYOUT.get(framework, "nchw"))
     return ModelSpec(name=m["name"], framework=framework, builtin=m.get("builtin"), file=file,
                      factory=m.get("factory"), weights=weights,
-                     python_path=tuple(_resolve(base, p) for p in m.get("python_path", [])), layout=layout,
+                     python_path=_python_path(base, at, m.get("python_path", []), report), layout=layout,
                      training=TrainingSpec(**m.get("training", {})))
+
+
+def _python_path(base: Path, at: tuple, entries: list[str], report: _Located) -> tuple[Path, ...]:
+    """Each entry an existing folder (a missing one would make the factory's import fail obscurely)."""
+    folders = []
+    for j, text in enumerate(entries):
+        folder = _path(base, text, at + ("python_path", j), report)
+        if folder is None:
+            continue
+        folders.append(folder)
+        if problem := paths.dir_problem(folder, "python_path folder"):
+            report.add(at + ("python_path", j),
+                       f"{problem} (python_path lists folders to import 'factory' from)")
+    return tuple(folders)
+
+
+def _model_file(file: Path, framework: str, at: tuple, report: _Located) -> None:
+    """A model file must be a regular file with a known ending, or a SavedModel directory of regular files."""
+    found, problem = paths.mode(file)
+    if problem:
+        report.add(at + ("file",), problem)
+        return
+    if found is None:
+        report.add(at + ("file",), f"model file not found: {file}")
+    elif stat.S_ISDIR(found):
+        if not (file / "saved_model.pb").is_file():
+            report.add(at + ("file",), f"'{file}' is a directory without saved_model.pb: a model directory "
+                                       f"must be a TensorFlow SavedModel")
+            return
+        if problem := paths.saved_model_problem(file):
+            report.add(at + ("file",), problem)
+    elif kind := not_regular(found):
+        report.add(at + ("file",), f"'{file}' is {kind}, not a model file; give a regular file")
+        return
+    expected = file_kind(file)
+    if expected is None:
+        report.add(at + ("file",), f"unsupported model file '{file.name}'; allowed: files ending "
+                                   f"{', '.join(MODEL_SUFFIXES)} (TorchScript, torch.export, ONNX, Keras) "
+                                   f"or a SavedModel directory")
+    elif expected[0] != framework:
+        report.add(at + ("framework",), f"'{file.name}' is a {expected[0]} model file, but framework "
+                                        f"is '{framework}'")
 
 
 def _dataset(base: Path, d: dict[str, Any], report: _Located) -> DatasetSpec:
     at = ("dataset",)
     kind = next(k for k in ("builtin", "npz", "folder") if k in d)
-    raw_paths = [] if kind == "builtin" else d[kind] if isinstance(d[kind], list) else [d[kind]]
-    paths = tuple(_resolve(base, p) for p in raw_paths)
-    for p in paths:
-        if kind == "npz" and not p.is_file():
-            report.add(at + ("npz",), f"dataset file not found: {p}")
-        if kind == "folder" and not (p / "data.csv").is_file():
-            report.add(at + ("folder",), f"{p} has no data.csv (expected header image_name,v,w,...)")
+    located = _data_paths(base, kind, d, report)
     if kind != "builtin":
         for key in ("samples", "circuits"):
             if key in d:
                 report.add(at + (key,), f"'{key}' only applies to the builtin dataset")
+    samples, circuits = d.get("samples", DatasetSpec.samples), d.get("circuits", DatasetSpec.circuits)
+    if kind == "builtin" and circuits > samples:
+        report.add(at + ("circuits",), f"{circuits} circuits for {samples} samples: every circuit needs at "
+                                       f"least one sample; lower circuits or raise samples")
     pre = d.get("preprocess", {})
     crop = pre.get("crop")
     labels = d.get("labels", {})
@@ -202,14 +280,45 @@ def _dataset(base: Path, d: dict[str, Any], report: _Located) -> DatasetSpec:
     mean, std = _tuple(pre.get("mean")), _tuple(pre.get("std"))
     if (mean is None) != (std is None):
         report.add(at + ("preprocess",), "give both 'mean' and 'std', or neither")
+    for start, end in (("top", "bottom"), ("left", "right")):
+        if crop and crop.get(start) is not None and crop.get(end) is not None and crop[end] <= crop[start]:
+            report.add(at + ("preprocess", "crop", end), f"{end} ({crop[end]}) must be greater than {start} "
+                                                         f"({crop[start]}): the bounds are slice bounds, "
+                                                         f"image[top:bottom, left:right]")
     return DatasetSpec(
-        kind=kind, paths=paths, samples=d.get("samples", 4000), circuits=d.get("circuits", 10),
-        seed=d.get("seed", 0),
+        kind=kind, paths=located, samples=samples, circuits=circuits, seed=d.get("seed", DatasetSpec.seed),
         preprocess=Preprocess(crop=(crop.get("top"), crop.get("bottom"), crop.get("left"), crop.get("right"))
                               if crop else None,
                               resize=_tuple(pre.get("resize")), scale=pre.get("scale", 1.0 / 255.0), mean=mean, std=std),
         labels=label_spec,
         split=SplitSpec(**fractions, by=split.get("by", "auto")))
+
+
+def _data_paths(base: Path, kind: str, d: dict[str, Any], report: _Located) -> tuple[Path, ...]:
+    """The npz file or the folders, each checked: a regular .npz file; folders holding a regular data.csv."""
+    if kind == "builtin":
+        return ()
+    listed = isinstance(d[kind], list)
+    located = []
+    for j, text in enumerate(d[kind] if listed else [d[kind]]):
+        at = ("dataset", kind) + ((j,) if listed else ())
+        path = _path(base, text, at, report)
+        if path is None:
+            continue
+        located.append(path)
+        if kind == "npz":
+            problem = paths.file_problem(path, "dataset file")
+        else:
+            problem = paths.dir_problem(path, "dataset folder") or _csv_problem(path / "data.csv")
+        if problem:
+            report.add(at, problem)
+    return tuple(located)
+
+
+def _csv_problem(csv: Path) -> str | None:
+    if paths.mode(csv) == (None, None):
+        return f"{csv.parent} has no data.csv (expected header image_name,v,w,...)"
+    return paths.file_problem(csv, "data.csv file")
 
 
 def _tuple(value: Any) -> tuple | None:

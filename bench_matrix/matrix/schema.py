@@ -12,16 +12,42 @@ BUILTIN_MODELS = ("pilotnet", "pilotnet_jderobot")
 BUILTIN_FRAMEWORKS = ("pytorch", "tensorflow")  # each built-in model exists in both
 CELL_KEYS = ("model", "framework", "backend", "strategy", "precision", "target")
 
+# Upper limits no real matrix reaches; they keep every later computation (timers, allocations, seeds) sane.
+MAX_ITERATIONS = 1_000_000
+MAX_SECONDS = 86_400  # one measurement phase: a day
+MAX_TIMEOUT_S = 604_800  # a cell: a week
+MAX_BATCH = 65_536
+MAX_THREADS = 1_024
+MAX_SAMPLES = 10_000_000
+MAX_SEED = 2**31 - 1  # every library's seed type holds it
+MAX_EPOCHS = 10_000
+MAX_LR = 10.0
+MAX_IMAGE_SIDE = 65_536
+MAX_RESIZE = 8_192
+
+
+def _count(minimum: int, maximum: int, **extra: Any) -> dict[str, Any]:
+    return {"type": "integer", "minimum": minimum, "maximum": maximum, **extra}
+
+
+def _seconds(maximum: int = MAX_SECONDS, exclusive: bool = False, **extra: Any) -> dict[str, Any]:
+    return {"type": "number", "exclusiveMinimum" if exclusive else "minimum": 0, "maximum": maximum, **extra}
+
+
+_SEED = _count(0, MAX_SEED)
+_EPOCHS = {"type": "number", "exclusiveMinimum": 0, "maximum": MAX_EPOCHS}
+_LR = {"type": "number", "exclusiveMinimum": 0, "maximum": MAX_LR}
+
 _TRAINING = {
-    "epochs": {"type": "number", "exclusiveMinimum": 0, "description": "fine-tuning epochs"},
+    "epochs": {**_EPOCHS, "description": "fine-tuning epochs"},
     "fraction": {"type": "number", "exclusiveMinimum": 0, "maximum": 1,
                  "description": "fraction of the training split used for fine-tuning"},
-    "lr": {"type": "number", "exclusiveMinimum": 0, "description": "learning rate"},
-    "batch_size": {"type": "integer", "minimum": 1},
+    "lr": {**_LR, "description": "learning rate"},
+    "batch_size": _count(1, MAX_BATCH),
 }
 _CALIBRATION = {
-    "calibration_samples": {"type": "integer", "minimum": 1,
-                            "description": "samples of the calibration split used to calibrate"},
+    "calibration_samples": _count(1, MAX_SAMPLES,
+                                  description="samples of the calibration split used to calibrate"),
 }
 _SPARSITY = {
     "initial_sparsity": {"type": "number", "minimum": 0, "exclusiveMaximum": 1},
@@ -30,15 +56,15 @@ _SPARSITY = {
     "scope": {"enum": ["local", "global"], "description": "per-layer (local) or whole-model (global) pruning"},
     "conv_sparsity": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
     "linear_sparsity": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
-    "min_weights": {"type": "integer", "minimum": 0,
-                    "description": "kernels with fewer weights stay dense (default 10000)"},
+    "min_weights": _count(0, 1_000_000_000,
+                          description="kernels with fewer weights stay dense (default 10000)"),
 }
 _CLUSTERS = {
-    "clusters": {"type": "integer", "minimum": 2, "description": "distinct values per weight tensor"},
+    "clusters": _count(2, 65_536, description="distinct values per weight tensor"),
     "init": {"enum": ["kmeans++", "linear", "density", "random"]},
-    "cluster_epochs": {"type": "number", "exclusiveMinimum": 0},
-    "qat_epochs": {"type": "number", "exclusiveMinimum": 0},
-    "prune_epochs": {"type": "number", "exclusiveMinimum": 0},
+    "cluster_epochs": _EPOCHS,
+    "qat_epochs": _EPOCHS,
+    "prune_epochs": _EPOCHS,
 }
 
 # Strategy kinds: what is done to the model. "conversion" kinds happen inside a backend's convert;
@@ -77,7 +103,8 @@ def _strategy_schema() -> dict[str, Any]:
     branches = []
     for kind, info in STRATEGY_KINDS.items():
         branches.append({
-            "if": {"properties": {"kind": {"const": kind}}, "required": ["kind"]},
+            "if": {"properties": {"kind": {"const": kind}}, "required": ["kind"],
+                   "not": {"required": ["steps"]}},
             "then": {"properties": {"kind": {}, "description": {"type": "string"}, **info["options"]},
                      "additionalProperties": False},
         })
@@ -91,7 +118,7 @@ def _strategy_schema() -> dict[str, Any]:
         },
         "oneOf": [{"required": ["kind"]}, {"required": ["steps"]}],
         "x-message": "give either 'kind' (with its options) or 'steps' (a list of strategy names), not both",
-        "allOf": branches + [{"if": {"required": ["steps"]},
+        "allOf": branches + [{"if": {"required": ["steps"], "not": {"required": ["kind"]}},
                               "then": {"properties": {"steps": {}, "description": {}},
                                        "additionalProperties": False}}],
     }
@@ -127,15 +154,15 @@ SCHEMA: dict[str, Any] = {
                             "(JdeRobot's variant of the framework: PyTorch 1.6 M parameters, TensorFlow 17 M)"},
                 "file": {"type": "string", "description": "TorchScript .pt/.pth, torch.export .pt2, Keras .keras/.h5, "
                                                          "a Keras SavedModel directory, or .onnx"},
-                "factory": {"type": "string", "pattern": r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$",
+                "factory": {"type": "string", "pattern": r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*$",
                             "x-message": "write it as 'package.module:function'"},
                 "weights": {"type": "string", "description": "state_dict file for 'factory'"},
                 "python_path": {"type": "array", "items": {"type": "string"}},
                 "layout": {"enum": ["nchw", "nhwc"]},
                 "training": {"type": "object", "additionalProperties": False, "properties": {
-                    "epochs": {"type": "integer", "minimum": 1},
-                    "batch_size": {"type": "integer", "minimum": 1},
-                    "lr": {"type": "number", "exclusiveMinimum": 0}}},
+                    "epochs": _count(1, MAX_EPOCHS),
+                    "batch_size": _count(1, MAX_BATCH),
+                    "lr": _LR}},
             },
             "oneOf": [{"required": ["builtin"]}, {"required": ["file"]}, {"required": ["factory"]}],
             "x-message": "give exactly one of 'builtin', 'file' or 'factory' (with 'weights')",
@@ -146,23 +173,27 @@ SCHEMA: dict[str, Any] = {
                 "builtin": {"enum": ["driving"]},
                 "npz": {"type": "string"},
                 "folder": {"oneOf": [{"type": "string"}, {"type": "array", "minItems": 1,
-                                                          "items": {"type": "string"}}]},
-                "samples": {"type": "integer", "minimum": 10},
-                "circuits": {"type": "integer", "minimum": 3},
-                "seed": {"type": "integer"},
+                                                          "items": {"type": "string"}}],
+                           "x-message": "give a folder or a list of folders"},
+                "samples": _count(10, 200_000),
+                "circuits": _count(3, 1_000),
+                "seed": _SEED,
                 "preprocess": {"type": "object", "additionalProperties": False, "properties": {
                     "crop": {"type": "object", "additionalProperties": False, "properties": {
-                        side: {"type": "integer", "minimum": 0} for side in ("top", "bottom", "left", "right")}},
-                    "resize": {"type": "array", "items": {"type": "integer", "minimum": 1},
+                        side: _count(0, MAX_IMAGE_SIDE) for side in ("top", "bottom", "left", "right")}},
+                    "resize": {"type": "array", "items": _count(1, MAX_RESIZE),
                                "minItems": 2, "maxItems": 2, "description": "[height, width]"},
-                    "scale": {"type": "number", "exclusiveMinimum": 0},
-                    "mean": {"type": "array", "items": {"type": "number"}, "minItems": 1},
-                    "std": {"type": "array", "items": {"type": "number", "exclusiveMinimum": 0}, "minItems": 1},
+                    "scale": {"type": "number", "exclusiveMinimum": 0, "maximum": 1e6},
+                    "mean": {"type": "array", "items": {"type": "number", "minimum": -1e6, "maximum": 1e6},
+                             "minItems": 1},
+                    "std": {"type": "array", "items": {"type": "number", "minimum": 1e-6, "maximum": 1e6},
+                            "minItems": 1},
                 }},
                 "labels": {"type": "object", "additionalProperties": False, "properties": {
                     "columns": {"type": "array", "items": {"type": "string"}, "minItems": 1},
-                    "offset": {"type": "array", "items": {"type": "number"}, "minItems": 1},
-                    "scale": {"type": "array", "items": {"type": "number", "exclusiveMinimum": 0},
+                    "offset": {"type": "array", "items": {"type": "number", "minimum": -1e9, "maximum": 1e9},
+                               "minItems": 1},
+                    "scale": {"type": "array", "items": {"type": "number", "minimum": 1e-9, "maximum": 1e9},
                               "minItems": 1},
                 }},
                 "split": {"type": "object", "additionalProperties": False, "properties": {
@@ -191,19 +222,20 @@ SCHEMA: dict[str, Any] = {
         "include": {"type": "array", "items": _SELECTOR},
         "exclude": {"type": "array", "items": _SELECTOR},
         "settings": {"type": "object", "additionalProperties": False, "properties": {
-            "warmup_iterations": {"type": "integer", "minimum": 0},
-            "warmup_s": {"type": "number", "minimum": 0},
-            "min_iterations": {"type": "integer", "minimum": 1},
-            "min_time_s": {"type": "number", "minimum": 0},
-            "max_time_s": {"type": "number", "exclusiveMinimum": 0},
-            "batch_size": {"type": "integer", "minimum": 1},
-            "throughput_time_s": {"type": "number", "exclusiveMinimum": 0},
-            "threads": {"type": "integer", "minimum": 1},
-            "timeout_s": {"type": "number", "exclusiveMinimum": 0},
-            "seed": {"type": "integer"},
-            "eval_samples": {"type": "integer", "minimum": 1},
-            "passes": {"type": "integer", "minimum": 1,
-                       "description": "measure every cell this many times, round-robin; keep the lowest p50"},
+            "warmup_iterations": _count(0, MAX_ITERATIONS),
+            "warmup_s": _seconds(),
+            "min_iterations": _count(1, MAX_ITERATIONS),
+            "min_time_s": _seconds(),
+            "max_time_s": _seconds(exclusive=True),
+            "batch_size": _count(1, MAX_BATCH),
+            "throughput_time_s": _seconds(exclusive=True),
+            "threads": _count(1, MAX_THREADS),
+            "timeout_s": _seconds(MAX_TIMEOUT_S, exclusive=True,
+                                  description="per cell, conversion and measurement together"),
+            "seed": _SEED,
+            "eval_samples": _count(1, MAX_SAMPLES),
+            "passes": _count(1, 100, description="measure every cell this many times, round-robin; keep the "
+                                                 "lowest p50"),
         }},
     },
 }

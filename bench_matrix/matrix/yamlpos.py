@@ -2,78 +2,173 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from bench_matrix.errors import MatrixError
+from bench_matrix.errors import MatrixError, UserError
+from bench_matrix.workspace import open_regular
 
 Path_ = tuple[str | int, ...]
+
+MAX_BYTES = 1 << 20  # a matrix file is a few kB; this bounds parse time and memory
+MAX_DEPTH = 50  # nesting levels (a matrix needs fewer than 10); keeps PyYAML's recursive composer safe
+MAX_VALUES = 100_000  # keys, items and scalars after aliases are expanded: bounds an alias bomb
+PLAIN_TAGS = {"tag:yaml.org,2002:map", "tag:yaml.org,2002:seq"}
+COLLECTION_STARTS = (yaml.MappingStartEvent, yaml.SequenceStartEvent)
+COLLECTION_ENDS = (yaml.MappingEndEvent, yaml.SequenceEndEvent)
 
 
 def load_with_lines(path: Path) -> tuple[Any, dict[Path_, int]]:
     """Parse `path` with the safe loader; return the data and a map from key path to 1-based line."""
+    text = _read_text(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise MatrixError([f"{path}: file not found"]) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise MatrixError([f"{path}: cannot read: {exc}"]) from None
-    try:
+        _check_depth(text, path)  # the event parser is iterative; the composer below recurses per level
         node = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}" if mark else str(path)
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise MatrixError([f"{where}: not valid YAML: {problem}"]) from None
+        raise MatrixError([_syntax_problem(path, text, exc)]) from None
     if node is None:
-        raise MatrixError([f"{path}: the file is empty; a matrix needs at least 'models', 'dataset' and 'axes'"])
-    lines: dict[Path_, int] = {(): node.start_mark.line + 1}
-    problems: list[str] = []
-    data = _convert(node, (), lines, problems, path)
-    if problems:
-        raise MatrixError(problems)
-    return data, lines
+        raise MatrixError([f"{path}: the file is empty; a matrix needs at least 'models', 'dataset' and "
+                           f"'axes'"])
+    converter = _Converter(path)
+    data = converter.convert(node, (), 0)
+    if converter.problems:
+        raise MatrixError(converter.problems)
+    return data, converter.lines
 
 
-PLAIN_TAGS = {"tag:yaml.org,2002:map", "tag:yaml.org,2002:seq"}
+def _read_text(path: Path) -> str:
+    """The file's text; a located MatrixError for anything but a readable UTF-8 regular file of sane size."""
+    try:
+        with open_regular(path) as file:
+            raw = file.read(MAX_BYTES + 1)
+    except FileNotFoundError:
+        raise MatrixError([f"{path}: file not found"]) from None
+    except UserError as exc:
+        raise MatrixError([f"{exc}; give the path of a YAML matrix file"]) from None
+    except (OSError, ValueError) as exc:
+        why = getattr(exc, "strerror", None) or exc
+        raise MatrixError([f"{path}: cannot read the matrix file: {why}"]) from None
+    if len(raw) > MAX_BYTES:
+        raise MatrixError([f"{path}: the file is larger than a matrix file can be; limit {MAX_BYTES} bytes "
+                           f"(1 MiB; a matrix is a few kB of YAML)"])
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line, column = raw.count(b"\n", 0, exc.start) + 1, exc.start - raw.rfind(b"\n", 0, exc.start)
+        raise MatrixError([f"{path}:{line}: the file is not UTF-8 text (byte 0x{raw[exc.start]:02x} at "
+                           f"column {column}); save it as UTF-8"]) from None
 
 
-def _convert(node: yaml.Node, at: Path_, lines: dict[Path_, int], problems: list[str], path: Path) -> Any:
-    if not isinstance(node, yaml.ScalarNode) and node.tag not in PLAIN_TAGS:
-        problems.append(f"{path}:{node.start_mark.line + 1}: {format_path(at)}: the tag {node.tag} is not "
-                        f"allowed; matrix files are plain YAML (mappings, lists, strings, numbers, booleans)")
-        return None
-    if isinstance(node, yaml.MappingNode):
+def _check_depth(text: str, path: Path) -> None:
+    depth = 0
+    for event in yaml.parse(text, Loader=yaml.SafeLoader):
+        if isinstance(event, COLLECTION_STARTS):
+            depth += 1
+            if depth > MAX_DEPTH:
+                raise MatrixError([f"{path}:{event.start_mark.line + 1}: nesting too deep: more than "
+                                   f"{MAX_DEPTH} levels of mappings and lists; limit {MAX_DEPTH}"])
+        elif isinstance(event, COLLECTION_ENDS):
+            depth -= 1
+
+
+def _syntax_problem(path: Path, text: str, exc: yaml.YAMLError) -> str:
+    """'file:line: not valid YAML: problem (context that started at line N, column M)'."""
+    if isinstance(exc, yaml.reader.ReaderError):
+        line = text.count("\n", 0, exc.position) + 1
+        return (f"{path}:{line}: not valid YAML: the character #x{exc.character:04x} is not allowed "
+                f"(only printable characters are)")
+    mark = getattr(exc, "problem_mark", None)
+    where = f"{path}:{mark.line + 1}" if mark else str(path)
+    problem = getattr(exc, "problem", None) or str(exc)
+    message = f"{where}: not valid YAML: {problem}"
+    context, start = getattr(exc, "context", None), getattr(exc, "context_mark", None)
+    if start is not None:
+        message += (f" ({context or 'the construct'} that started at line {start.line + 1}, "
+                    f"column {start.column + 1})")
+    elif mark is not None:
+        message += f" (column {mark.column + 1})"
+    return message
+
+
+class _Converter:
+    """Node graph to plain data with a line per key path; refuses tags, cycles and runaway alias expansion."""
+
+    def __init__(self, path: Path):
+        self.path, self.lines, self.problems = path, {}, []
+        self.values, self.active = 0, set()
+        self.scalars = yaml.SafeLoader("")
+
+    def convert(self, node: yaml.Node, at: Path_, depth: int) -> Any:
+        self.lines.setdefault(at, node.start_mark.line + 1)
+        self.values += 1
+        if self.values > MAX_VALUES or depth > MAX_DEPTH:  # located at the top-level key being expanded
+            what, limit = ((f"{MAX_VALUES} values", MAX_VALUES) if self.values > MAX_VALUES else
+                           (f"{MAX_DEPTH} levels", MAX_DEPTH))
+            raise MatrixError([f"{self._where(node, at[:1])}: aliases expand this to more than {what}: "
+                               f"aliases/nesting too deep; limit {limit}"])
+        if id(node) in self.active:
+            self.problems.append(f"{self._where(node, at)}: a recursive alias (it refers to a mapping or "
+                                 f"list that contains it); matrix files cannot contain cycles")
+            return None
+        if not isinstance(node, yaml.ScalarNode) and node.tag not in PLAIN_TAGS:
+            return self._refuse_tag(node, at)
+        if isinstance(node, yaml.ScalarNode):
+            return self._scalar(node, at)
+        self.active.add(id(node))
+        try:
+            if isinstance(node, yaml.MappingNode):
+                return self._mapping(node, at, depth)
+            return [self.convert(item, at + (i,), depth + 1) for i, item in enumerate(node.value)]
+        finally:
+            self.active.discard(id(node))
+
+    def _mapping(self, node: yaml.MappingNode, at: Path_, depth: int) -> dict[str, Any]:
         out: dict[str, Any] = {}
         for key_node, value_node in node.value:
             line = key_node.start_mark.line + 1
             if not isinstance(key_node, yaml.ScalarNode):
-                problems.append(f"{path}:{line}: {format_path(at)}: keys must be plain names")
+                self.problems.append(f"{self.path}:{line}: {format_path(at)}: keys must be plain names")
                 continue
             key = key_node.value
-            if key in out:
-                problems.append(f"{path}:{line}: {format_path(at + (key,))}: duplicate key '{key}'")
+            if not self._is_unicode(key, key_node, at + (key,)):
                 continue
-            lines[at + (key,)] = line
-            out[key] = _convert(value_node, at + (key,), lines, problems, path)
+            if key in out:
+                self.problems.append(f"{self.path}:{line}: {format_path(at + (key,))}: duplicate key '{key}'")
+                continue
+            self.lines[at + (key,)] = line
+            out[key] = self.convert(value_node, at + (key,), depth + 1)
         return out
-    if isinstance(node, yaml.SequenceNode):
-        items = []
-        for index, item in enumerate(node.value):
-            lines[at + (index,)] = item.start_mark.line + 1
-            items.append(_convert(item, at + (index,), lines, problems, path))
-        return items
-    loader = yaml.SafeLoader("")
-    try:
-        return loader.construct_object(node, deep=True)
-    except yaml.YAMLError:
-        problems.append(f"{path}:{node.start_mark.line + 1}: {format_path(at)}: the tag {node.tag} is not "
-                        f"allowed; matrix files are plain YAML (mappings, lists, strings, numbers, booleans)")
-        return None
-    finally:
-        loader.dispose()
+
+    def _scalar(self, node: yaml.ScalarNode, at: Path_) -> Any:
+        try:
+            value = self.scalars.construct_object(node, deep=True)
+        except yaml.YAMLError:
+            return self._refuse_tag(node, at)
+        except ValueError:  # Python refuses to convert integers of more than 4300 digits
+            self.problems.append(f"{self._where(node, at)}: a number of {len(node.value)} characters is too "
+                                 f"long to read; limit {sys.get_int_max_str_digits()} digits")
+            return None
+        return value if not isinstance(value, str) or self._is_unicode(value, node, at) else None
+
+    def _is_unicode(self, text: str, node: yaml.Node, at: Path_) -> bool:
+        """False, with a problem, for a string holding a lone surrogate (an escape such as \\ud800)."""
+        try:
+            text.encode("utf-8")
+            return True
+        except UnicodeEncodeError as exc:
+            self.problems.append(f"{self._where(node, at)}: {text!r} holds {text[exc.start]!r}, which is not "
+                                 f"a character (a lone surrogate); write the character itself")
+            return False
+
+    def _refuse_tag(self, node: yaml.Node, at: Path_) -> None:
+        self.problems.append(f"{self._where(node, at)}: the tag {node.tag} is not allowed; matrix files are "
+                             f"plain YAML (mappings, lists, strings, numbers, booleans)")
+
+    def _where(self, node: yaml.Node, at: Path_) -> str:
+        return f"{self.path}:{self.lines.get(at, node.start_mark.line + 1)}: {format_path(at)}"
 
 
 def format_path(at: Path_) -> str:

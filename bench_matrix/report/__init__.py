@@ -25,7 +25,7 @@ def load(store_path: str | Path) -> tuple[list[CellRecord], Report]:
     if not path.is_file():
         raise UserError(f"no results store at {path}: {hint}")
     try:
-        store = ResultStore(path)
+        store = ResultStore(path, readonly=True)
     except sqlite3.DatabaseError as error:
         raise UserError(f"{path} is not a bench-matrix results store ({error}): {hint}") from None
     try:

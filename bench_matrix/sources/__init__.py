@@ -6,8 +6,15 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from bench_matrix.errors import UserError
+
 # keras_qat: a quantisation-aware-trained Keras model, written by the tfmot trainer (loaded in tfmot's scope)
 FORMATS = ("torchscript", "torch_export", "state_dict", "onnx", "keras", "h5", "saved_model", "keras_qat")
+
+
+class ModelFileError(UserError, ValueError):
+    """A model file, weights file or factory bench-matrix will not or cannot load: the user's to fix (a
+    UserError), and a ValueError as the loaders' errors always were."""
 
 
 @dataclass(frozen=True)
@@ -22,10 +29,23 @@ class SourceModel:
     input_shape: tuple[int, ...]  # one sample in the model's layout, without the batch dimension
     factory: str | None = None  # 'module:function' building the module a state_dict belongs to
     python_path: tuple[str, ...] = ()
+    origin: str | None = None  # the user's file this is a fine-tuned copy of; None: `path` is the user's
+
+    @property
+    def label(self) -> str:
+        """How messages name the model file: the user's path, and the cache copy's path after it."""
+        return f"{self.origin} (fine-tuned copy {self.path})" if self.origin else str(self.path)
 
     def load(self) -> Any:
         """A fresh framework object (never shared between strategies): nn.Module, ScriptModule, Keras model,
-        or ONNX path."""
+        or the ONNX file's path (bench-matrix reads it with sources.onnx_file.load_onnx); ModelFileError when
+        the file is unsafe or unreadable."""
+        try:
+            return self._load()
+        except (FileNotFoundError, PermissionError, IsADirectoryError) as exc:
+            raise ModelFileError(f"{self.label}: cannot be read ({exc.strerror}: {exc.filename})") from None
+
+    def _load(self) -> Any:
         if self.framework == "pytorch":
             from bench_matrix.sources.pytorch import load_module
 

@@ -6,6 +6,9 @@ import os
 from contextlib import suppress
 from typing import TYPE_CHECKING, Any
 
+from bench_matrix.sources import ModelFileError
+from bench_matrix.sources.keras_files import RESAVE, check_keras_file
+
 if TYPE_CHECKING:
     from bench_matrix.sources import SourceModel
 
@@ -42,28 +45,30 @@ def thread_settings() -> dict[str, int]:
 
 def load_keras(source: "SourceModel") -> Any:
     """A fresh Keras model from a .keras file, an .h5 file or a Keras SavedModel directory, loaded safely:
-    `safe_mode` refuses Python code (Lambda bytecode) in .keras and .h5 files; a SavedModel holds graphs only."""
+    checked first (no Lambda layer, no object from outside Keras, no SavedModel operation that calls Python or
+    touches files), then read in `safe_mode`."""
     k = keras()
     from tf_keras.src.saving.serialization_lib import SafeModeScope
 
-    path = str(source.path)
     if source.format == "keras_qat":  # our own trainer's output, in the workspace cache
         from bench_matrix.strategies.tfmot_models import load_qat
 
         return load_qat(source.path)
+    check_keras_file(source.path, source.label)
     try:
         with SafeModeScope(True):
-            model = k.models.load_model(path, compile=False)
-    except (ValueError, OSError, TypeError) as exc:
-        raise ValueError(f"{path}: cannot load this Keras model with tf_keras {k.__version__} in safe mode: "
-                         f"{exc}") from exc
+            model = k.models.load_model(str(source.path), compile=False)
+    except Exception as exc:  # tf_keras raises many kinds for a damaged or foreign file
+        text = str(exc).strip().splitlines()[0][:400] if str(exc).strip() else ""
+        raise ModelFileError(f"{source.label}: cannot load this Keras model with tf_keras {k.__version__} in "
+                             f"safe mode: {type(exc).__name__}: {text}; {RESAVE}") from None
     if not isinstance(model, k.Model):
-        raise ValueError(f"{path}: this SavedModel was not written by Keras (it loads as "
-                         f"{type(model).__name__}); save the model with Keras 2 (tf_keras) as .keras, .h5 or "
-                         f"a Keras SavedModel")
+        raise ModelFileError(f"{source.label}: this SavedModel was not written by Keras (it loads as "
+                             f"{type(model).__name__}); save the model with Keras 2 (tf_keras) as .keras, "
+                             f".h5 or a Keras SavedModel")
     if len(model.inputs) != 1 or len(model.outputs) != 1:
-        raise ValueError(f"{path}: bench-matrix runs models with one input and one output; this one has "
-                         f"{len(model.inputs)} input(s) and {len(model.outputs)} output(s)")
+        raise ModelFileError(f"{source.label}: bench-matrix runs models with one input and one output; this "
+                             f"one has {len(model.inputs)} input(s) and {len(model.outputs)} output(s)")
     return model
 
 

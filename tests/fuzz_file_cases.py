@@ -1,0 +1,390 @@
+"""Generators of broken and hostile data files and model files for test_fuzz_inputs.py, each with what its
+error message must name; seeded, so every run generates the same cases."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import pickle
+import struct
+import sys
+import zipfile
+import zlib
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from fuzz_cases import Case, Payload, SECRET, SEED, TESTS, markers, onnx_model, render
+
+
+def png(image: np.ndarray) -> bytes:
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def bomb_png(side: int = 20000) -> bytes:
+    """A 1-bit PNG of a few tens of kB that decodes to side x side pixels (Pillow's limit is 2 x 89 M)."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    row, packer = bytes(1 + (side + 7) // 8), zlib.compressobj(9)
+    pixels = b"".join(packer.compress(row) for _ in range(side)) + packer.flush()
+    header = struct.pack(">IIBBBBB", side, side, 1, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", pixels) + chunk(b"IEND", b"")
+
+
+EPS = b"%!PS-Adobe-3.0 EPSF-3.0\n%%BoundingBox: 0 0 16 16\n0 0 moveto 16 16 lineto stroke showpage\n"
+ROWS = [f"r{i}.png,{i / 10},{-i / 10}" for i in range(12)]  # row i is line i + 2 of data.csv
+NOTED = [f"{r},fine" for r in ROWS]  # with a fourth column, 'note'
+SPLIT = {"train": 0.5, "calibration": 0.25, "test": 0.25}
+
+
+def recording(rows: list[str] = ROWS, images: dict[str, Any] | None = None, encoding: str = "utf-8",
+              header: str = "image_name,v,w", preprocess: dict | None = None) -> Callable[[Path], str]:
+    """A DeepLearningStudio folder 'rec' (data.csv and 16x16 PNGs, some replaced by `images`)."""
+    def build(project: Path) -> str:
+        folder = project / "rec"
+        folder.mkdir()
+        rng = np.random.default_rng(SEED)
+        files = {f"r{i}.png": png(rng.integers(0, 256, (16, 16, 3), dtype=np.uint8)) for i in range(12)}
+        (project / "outside.png").write_bytes(files["r0.png"])
+        for name, data in {**files, **(images or {})}.items():
+            (folder / name).write_bytes(data(project) if callable(data) else data)
+        (folder / "data.csv").write_bytes("\n".join([header, *rows]).encode(encoding) + b"\n")
+        dataset = {"folder": "rec", "split": SPLIT, **({"preprocess": preprocess} if preprocess else {})}
+        return render(((("dataset",), dataset),))
+    return build
+
+
+def row(i: int, text: str, rows: list[str] = ROWS) -> list[str]:
+    return rows[:i] + [text] + rows[i + 1:]
+
+
+def arrays(**changes: Any) -> Callable[[Path], dict[str, Any]]:
+    """The good x, y with `changes` (a value, None to drop the array, or a function of the project)."""
+    def make(project: Path) -> dict[str, Any]:
+        rng = np.random.default_rng(SEED)
+        good = {"x": rng.integers(0, 256, (48, 16, 16, 3), dtype=np.uint8),
+                "y": rng.random((48, 2), np.float32)}
+        for key, value in changes.items():
+            good[key] = value(project) if callable(value) else value
+        return {k: v for k, v in good.items() if v is not None}
+    return make
+
+
+def npz_bytes(**data: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.savez(buffer, **data)
+    return buffer.getvalue()
+
+
+def hostile_array(name: str) -> Callable[[Path], np.ndarray]:
+    def make(project: Path) -> np.ndarray:
+        array = np.empty(48, dtype=object)
+        array[:] = [Payload(markers(project) / name) for _ in range(48)]
+        return array
+    return make
+
+
+def with_value(array: np.ndarray, index: tuple, value: float) -> np.ndarray:
+    out = array.astype(np.float32)
+    out[index] = value
+    return out
+
+
+GOOD = arrays()(Path())
+NPZ = {  # name -> (arrays or bytes, culprit besides the file name, marker)
+    "empty_file": (b"", (), None), "truncated": (npz_bytes(**GOOD)[:3000], (), None),
+    "random_bytes": (np.random.default_rng(SEED).bytes(3000), (), None),
+    "csv_text": (b"x,y\n1,2\n", (), None),
+    "object_images": (arrays(x=hostile_array("npz_x")), (r"re:\bx\b",), "npz_x"),
+    "object_labels": (arrays(y=hostile_array("npz_y")), (r"re:\by\b",), "npz_y"),
+    "string_labels": (arrays(y=np.array([["a", "b"]] * 48)), (r"re:\by\b",), None),
+    "nan_labels": (arrays(y=with_value(GOOD["y"], (5, 1), np.nan)), (r"re:\by\b",), None),
+    "inf_labels": (arrays(y=with_value(GOOD["y"], (7, 0), np.inf)), (r"re:\by\b",), None),
+    "nan_images": (arrays(x=with_value(GOOD["x"], (3, 1, 2, 0), np.nan)), (r"re:\bx\b",), None),
+    "inf_images": (arrays(x=with_value(GOOD["x"], (4, 0, 0, 1), -np.inf)), (r"re:\bx\b",), None),
+    "length_mismatch": (arrays(y=GOOD["y"][:40]), (r"re:\by\b",), None),
+    "missing_y": (arrays(y=None), (r"re:\by\b",), None),
+    "groups_length": (arrays(groups=np.arange(20)), ("groups",), None),
+    "groups_strings": (arrays(groups=np.array([f"run{i % 4}" for i in range(48)])), ("groups",), None),
+    "groups_nan": (arrays(groups=with_value(np.arange(48) % 4, 9, np.nan)), ("groups",), None),
+    "groups_2d": (arrays(groups=np.zeros((48, 2), np.int64)), ("groups",), None),
+    "images_2d": (arrays(x=GOOD["x"].reshape(48, -1)), (r"re:\bx\b",), None),
+    "zero_samples": (arrays(x=GOOD["x"][:0], y=GOOD["y"][:0]), (), None),
+    "zero_width_images": (arrays(x=GOOD["x"][:, :, :0]), (r"re:\bx\b",), None),
+    "complex_images": (arrays(x=GOOD["x"].astype(np.complex64)), (r"re:\bx\b",), None),
+}
+FOLDER = {  # name -> (folder builder, culprit)
+    "csv_utf16": (recording(encoding="utf-16"), ("data.csv",)),
+    "csv_latin1": (recording(row(1, "r1.png,0.1,0.2,naïve", NOTED), encoding="latin-1",
+                             header="image_name,v,w,note"), ("data.csv",)),
+    "csv_short_row": (recording(row(2, "r2.png,0.5")), ("data.csv:4",)),
+    "csv_text_label": (recording(row(1, "r1.png,fast,0.2")), ("data.csv:3",)),
+    "csv_nan_label": (recording(row(1, "r1.png,nan,0.2")), ("data.csv:3",)),
+    "csv_inf_label": (recording(row(1, "r1.png,0.1,-inf")), ("data.csv:3",)),
+    "csv_nul_in_name": (recording(row(1, "r1.png\0,0.1,0.2")), ("data.csv:3",)),
+    "csv_huge_field": (recording(row(1, "r1.png,0.1,0.2," + "z" * 200_000, NOTED),
+                                 header="image_name,v,w,note"),
+                       ("data.csv:3",)),
+    "csv_empty_file": (recording([], header=""), ("data.csv",)),
+    "png_missing": (recording(row(3, "nothere.png,0.1,0.2")), ("nothere",)),
+    "png_corrupt": (recording(images={"r3.png": np.random.default_rng(SEED).bytes(500)}),
+                    ("r3.png", "data.csv:5")),
+    "png_truncated": (recording(images={"r3.png": png(np.full((16, 16, 3), 7, np.uint8))[:-30]}),
+                      ("r3.png", "data.csv:5")),
+    "png_empty": (recording(images={"r3.png": b""}), ("r3.png", "data.csv:5")),
+    "png_decompression_bomb": (recording(images={"r3.png": lambda _p: bomb_png()}), ("r3.png", "data.csv:5")),
+    "png_mixed_sizes": (recording(images={"r3.png": png(np.zeros((12, 20, 3), np.uint8))}),
+                        ("r3.png", "data.csv:5", "resize")),
+    "png_postscript_inside": (recording(images={"r3.png": EPS}), ("r3.png", "data.csv:5")),
+    "png_path_dotdot": (recording(row(1, "../outside.png,0.1,0.2")), ("../outside", "data.csv:3")),
+    "png_path_absolute": (recording(row(1, "/proc/self/environ,0.1,0.2")),
+                          ("/proc/self/environ", "data.csv:3")),
+    "png_crop_beyond_image": (recording(preprocess={"crop": {"top": 40}}), ("crop",)),
+}
+
+
+def data_cases() -> list[Case]:
+    """Broken .npz files and DeepLearningStudio folders; their culprit includes the file's name."""
+    cases = []
+    for name, (content, culprit, marker) in NPZ.items():
+        def build(project: Path, name: str = name, content: Any = content) -> str:
+            data = content(project) if callable(content) else content
+            path = project / f"{name}.npz"
+            path.write_bytes(data) if isinstance(data, bytes) else np.savez(path, **data)
+            return render(((("dataset", "npz"), path.name),))
+        culprit = ((f"{name}.npz",),) + ((culprit,) if culprit else ())
+        cases.append(Case(f"npz:{name}", build, culprit, marker))
+    cases += [Case(f"folder:{name}", build, (culprit,)) for name, (build, culprit) in FOLDER.items()]
+    return cases
+
+
+# ---------------------------------------------------------------------------------------------- model files
+
+def rezip(data: bytes, replace: dict[str, Callable[[bytes], bytes]], add: dict[str, bytes] | None = None
+          ) -> bytes:
+    """A copy of zip `data` with the members ending in a key of `replace` rewritten, and `add` appended."""
+    out = io.BytesIO()
+    with zipfile.ZipFile(io.BytesIO(data)) as source, zipfile.ZipFile(out, "w") as target:
+        for info in source.infolist():
+            member = source.read(info.filename)
+            for suffix, change in replace.items():
+                member = change(member) if info.filename.endswith(suffix) else member
+            target.writestr(info, member)
+        prefix = source.namelist()[0].split("/")[0]
+        for name, member in (add or {}).items():
+            target.writestr(f"{prefix}/{name}", member)
+    return out.getvalue()
+
+
+def torch_bytes(obj: Any) -> bytes:
+    import torch
+
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    return buffer.getvalue()
+
+
+def torchscript(module: Any = None) -> bytes:
+    import torch
+    from tiny_models import tiny
+
+    buffer = io.BytesIO()
+    torch.jit.save(torch.jit.script(module or tiny().eval()), buffer)
+    return buffer.getvalue()
+
+
+def exported() -> bytes:
+    import torch
+    from tiny_models import tiny
+
+    buffer = io.BytesIO()
+    torch.export.save(torch.export.export(tiny().eval(), (torch.rand(1, 3, 16, 16),)), buffer)
+    return buffer.getvalue()
+
+
+def file_writer(marker: Path) -> bytes:
+    """TorchScript whose forward writes `marker` (aten::save): code a model file carries."""
+    import torch
+    from tiny_models import tiny
+
+    class Writer(torch.nn.Module):
+        def __init__(self, path: str):
+            super().__init__()
+            self.path, self.net = path, tiny().eval()
+
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            torch.save(x, self.path)
+            return self.net(x)
+
+    return torchscript(Writer(str(marker)))
+
+
+def pickled_weight(config: bytes) -> bytes:
+    entries = json.loads(config)
+    entries["config"]["0.weight"]["use_pickle"] = True
+    return json.dumps(entries).encode()
+
+
+def opaque_constant(_config: bytes) -> bytes:
+    meta = {"path_name": "opaque_obj_0", "is_param": False, "use_pickle": True, "tensor_meta": None}
+    return json.dumps({"config": {"evil": meta}}).encode()
+
+
+def hostile_pt2(project: Path, marker: str) -> bytes:
+    payload = Payload(markers(project) / marker)
+    if marker == "pt2_weight":
+        return rezip(exported(), {"model_weights_config.json": pickled_weight,
+                                  "weights/weight_0": lambda _: torch_bytes(payload)})
+    return rezip(exported(), {"model_constants_config.json": opaque_constant},
+                 {"data/constants/opaque_obj_0": pickle.dumps(payload)})
+
+
+def hostile_torchscript(project: Path) -> bytes:
+    payload = zipfile.ZipFile(io.BytesIO(torch_bytes(Payload(markers(project) / "ts_pickle"))))
+    return rezip(torchscript(), {"/data.pkl": lambda _: payload.read(next(n for n in payload.namelist()
+                                                                         if n.endswith("data.pkl")))})
+
+
+def mismatched_weights() -> bytes:
+    import torch
+
+    return torch_bytes(torch.nn.Linear(3, 2).state_dict())
+
+
+FACTORIES = ("def raises():\n    raise RuntimeError('boom from the factory')\n\n\n"
+             "def nothing():\n    return None\n")
+
+
+def model_file(name: str, content: Callable[[Path], bytes], framework: str = "pytorch"
+               ) -> Callable[[Path], dict]:
+    def build(project: Path) -> dict[str, Any]:
+        (project / "models").mkdir(exist_ok=True)
+        (project / "models" / name).write_bytes(content(project))
+        return {"framework": framework, "file": f"models/{name}"}
+    return build
+
+
+def factory(name: str, weights: Callable[[Path], bytes] | None = None) -> Callable[[Path], dict]:
+    def build(project: Path) -> dict[str, Any]:
+        (project / "pkg").mkdir(exist_ok=True)
+        (project / "pkg" / "fuzz_factory.py").write_text(FACTORIES)
+        file = project / (f"{name}.pt" if weights else "tiny.pt")
+        if weights:
+            file.write_bytes(weights(project))
+        return {"framework": "pytorch", "factory": "tiny_models:tiny" if weights else name,
+                "weights": file.name, "python_path": ["pkg", str(TESTS)]}
+    return build
+
+
+def half(make: Callable[[], bytes]) -> Callable[[Path], bytes]:
+    def content(_project: Path) -> bytes:
+        data = make()
+        return data[: len(data) // 2]
+    return content
+
+
+def torch_model_cases() -> list[Case]:
+    """PyTorch model files: broken, of another format, and hostile (pickles, code); needs torch."""
+    files = {  # file name -> (content, marker)
+        "onnx_inside.pt": (lambda _p: onnx_model(), None),
+        "pickled_module.pt": (lambda p: torch_bytes(Payload(markers(p) / "pickled")), "pickled"),
+        "ts_hostile.pt": (hostile_torchscript, "ts_pickle"),
+        "ts_writer.pt": (lambda p: file_writer(markers(p) / "ts_writer"), "ts_writer"),
+        "pt2_weight.pt2": (lambda p: hostile_pt2(p, "pt2_weight"), "pt2_weight"),
+        "pt2_constant.pt2": (lambda p: hostile_pt2(p, "pt2_constant"), "pt2_constant"),
+        "pt2_truncated.pt2": (half(exported), None),
+    }
+    weights = {
+        "weights_hostile": (lambda p: torch_bytes({"0.weight": Payload(markers(p) / "weights")}), "weights"),
+        "weights_mismatch": (lambda _p: mismatched_weights(), None),
+        "weights_truncated": (lambda p: (p / "tiny.pt").read_bytes()[:500], None),
+    }
+    return ([Case(f"file:{name}", model_file(name, content), ((name,),), marker)
+             for name, (content, marker) in files.items()]
+            + [Case(f"weights:{name}", factory(name, content), ((f"{name}.pt",),), marker)
+               for name, (content, marker) in weights.items()]
+            + [Case("factory:raises", factory("fuzz_factory:raises"),
+                    (("fuzz_factory:raises",), ("boom from the factory",))),
+               Case("factory:returns_none", factory("fuzz_factory:nothing"), (("fuzz_factory:nothing",),))])
+
+
+def external(location: Callable[[Path], str], setup: Callable[[Path], None] = lambda _p: None):
+    def content(project: Path) -> bytes:
+        (project / "secret").write_bytes(SECRET)
+        setup(project / "models")
+        return onnx_model(location(project))
+    return content
+
+
+def onnx_and_keras_cases() -> list[Case]:
+    """ONNX files (broken, external data outside the model's folder) and Keras files (see build_keras)."""
+    onnx_files = {
+        "onnx_random.onnx": lambda _p: np.random.default_rng(SEED).bytes(2000),
+        "onnx_empty.onnx": lambda _p: b"",
+        "onnx_truncated.onnx": lambda _p: onnx_model()[:100],
+        "ext_dotdot.onnx": external(lambda _p: "../secret"),
+        "ext_absolute.onnx": external(lambda p: str(p / "secret")),
+        "ext_symlink.onnx": external(lambda _p: "ext_link.bin",
+                                     lambda m: (m / "ext_link.bin").symlink_to("../secret")),
+        "ext_missing.onnx": external(lambda _p: "ext_missing.bin"),
+        "ext_fifo.onnx": external(lambda _p: "ext_pipe.bin", lambda m: os.mkfifo(m / "ext_pipe.bin")),
+    }
+    cases = [Case(f"onnx:{name}", model_file(name, content, "onnx"), ((name,),))
+             for name, content in onnx_files.items()]
+    keras = {"lambda.keras": "lambda_keras", "lambda.h5": "lambda_h5", "writer_savedmodel": "savedmodel",
+             "truncated.keras": None}
+    return cases + [Case(f"keras:{name}", lambda _p, n=name: {"framework": "tensorflow",
+                                                              "file": f"models/{n}"}, ((name,),), marker)
+                    for name, marker in keras.items()]
+
+
+def build_torch(project: Path) -> None:
+    """tiny.pt and the files of every PyTorch case in `project`; prints their model entries as JSON."""
+    import torch
+    from tiny_models import tiny
+
+    torch.save(tiny().state_dict(), project / "tiny.pt")
+    print(json.dumps({case.id: case.build(project) for case in torch_model_cases()}))
+
+
+def build_keras(project: Path) -> None:
+    """Keras files: Lambda layers whose bytecode writes a marker (.keras, .h5), a SavedModel whose graph
+    writes one (tf.io.write_file), a truncated .keras. Each payload is seen to work; its marker is removed."""
+    out, marks = project / "models", markers(project)
+    out.mkdir(exist_ok=True)
+    os.environ["TF_USE_LEGACY_KERAS"] = "1"
+    import tensorflow as tf
+    import tf_keras as k
+
+    def model(layer: Any) -> Any:
+        return k.Sequential([k.layers.Input((16, 16, 3)), layer, k.layers.GlobalAveragePooling2D(),
+                             k.layers.Dense(2)])
+
+    for suffix in ("keras", "h5"):
+        marker = marks / f"lambda_{suffix}"
+        code = f"lambda x: (__import__('pathlib').Path({str(marker)!r}).write_text('x'), x)[1]"
+        model(k.layers.Lambda(eval(code))).save(out / f"lambda.{suffix}")
+        marker.unlink()  # written when the model was built: the bytecode is live
+
+    class Writer(k.layers.Layer):
+        def call(self, x: Any) -> Any:
+            tf.io.write_file(str(marks / "savedmodel"), "pwned")
+            return x
+
+    model(Writer()).save(out / "writer_savedmodel", save_format="tf")
+    k.models.load_model(out / "writer_savedmodel", compile=False)(np.zeros((1, 16, 16, 3), np.float32))
+    (marks / "savedmodel").unlink()  # written by the reloaded graph: the payload is live
+    model(k.layers.Activation("relu")).save(out / "plain.keras")
+    data = (out / "plain.keras").read_bytes()
+    (out / "truncated.keras").write_bytes(data[: len(data) // 2])
+
+
+if __name__ == "__main__":  # run by test_fuzz_inputs.py in children: torch.export is not thread-safe
+    {"torch": build_torch, "keras": build_keras}[sys.argv[1]](Path(sys.argv[2]))
