@@ -42,23 +42,25 @@ def mode(path: Path) -> tuple[int | None, str | None]:
 
 def file_problem(path: Path, noun: str) -> str | None:
     """Why `path` is not a regular file to read as `noun` ('model file', ...), or None."""
-    found, error = mode(path)
-    if error:
-        return error
-    if found is None:
-        return f"{noun} not found: {path}"
-    kind = not_regular(found)
-    return f"{path} is {kind}, not a {noun}; give a regular file" if kind else None
+    found, problem = _existing(path, noun)
+    kind = not_regular(found) if found is not None else None
+    return problem or (f"{path} is {kind}, not a {noun}; give a regular file" if kind else None)
 
 
 def dir_problem(path: Path, noun: str) -> str | None:
     """Why `path` is not a directory to use as `noun`, or None."""
+    found, problem = _existing(path, noun)
+    if problem or found is None or stat.S_ISDIR(found):
+        return problem
+    return f"{path} is {not_regular(found) or 'a file'}, not a directory"
+
+
+def _existing(path: Path, noun: str) -> tuple[int | None, str | None]:
+    """(st_mode, None) of what `path` names, or (None, why there is nothing to use as `noun`)."""
     found, error = mode(path)
-    if error:
-        return error
-    if found is None:
-        return f"{noun} not found: {path}"
-    return None if stat.S_ISDIR(found) else f"{path} is {not_regular(found) or 'a file'}, not a directory"
+    if error or found is None:
+        return None, error or f"{noun} not found: {path}"
+    return found, None
 
 
 def saved_model_problem(path: Path) -> str | None:
