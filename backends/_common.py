@@ -1,11 +1,16 @@
-"""What the built-in backends share: the ptq_static option check and calibration data in batches."""
+"""What the built-in backends share: the ptq_static option check, calibration data in batches, and a model's
+outputs as one flat list."""
 
 from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
 from bench_matrix.backends.base import ConvertRequest
 from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.tensors import Inputs, count, take
 
 CALIBRATION_BATCH = 32
 DEFAULT_CALIBRATION_SAMPLES = 100
@@ -22,15 +27,29 @@ def static_options_reason(step: StrategySpec, runtime: str, methods: tuple[str, 
     return None
 
 
-def calibration_data(request: ConvertRequest, step: StrategySpec) -> np.ndarray:
-    """The first `calibration_samples` calibration samples as one float32 array."""
+def calibration_data(request: ConvertRequest, step: StrategySpec) -> Inputs:
+    """The first `calibration_samples` calibration samples of every input (floating inputs as float32)."""
     samples = int(step.options.get("calibration_samples", DEFAULT_CALIBRATION_SAMPLES))
-    data = np.ascontiguousarray(request.calibration(samples), dtype=np.float32)
-    if len(data) == 0:
+    data = {name: np.ascontiguousarray(a, dtype=np.float32 if np.issubdtype(a.dtype, np.floating) else a.dtype)
+            for name, a in request.calibration(samples).items()}
+    if count(data) == 0:
         raise ValueError("ptq_static needs calibration samples but the calibration split is empty; "
                          "give the dataset a non-zero calibration fraction")
     return data
 
 
-def batches(data: np.ndarray, size: int = CALIBRATION_BATCH) -> list[np.ndarray]:
-    return [data[i:i + size] for i in range(0, len(data), size)]
+def batches(data: Inputs, size: int = CALIBRATION_BATCH) -> list[Inputs]:
+    """The samples of every input in consecutive batches of `size` (the last one may be smaller)."""
+    return [take(data, slice(i, i + size)) for i in range(0, count(data), size)]
+
+
+def flat_outputs(outputs: Any) -> list[Any]:
+    """A model's outputs as a flat list: a tensor alone; a tuple or list in order; a dict (a Keras model built
+    with named outputs, a Hugging Face ModelOutput) by sorted key; nested structures depth first; None dropped."""
+    if outputs is None:
+        return []
+    if isinstance(outputs, Mapping):
+        return [leaf for key in sorted(outputs) for leaf in flat_outputs(outputs[key])]
+    if isinstance(outputs, (list, tuple)):
+        return [leaf for item in outputs for leaf in flat_outputs(item)]
+    return [outputs]

@@ -51,14 +51,14 @@ TENSORRT_LIBRARIES = ("libnvinfer.", "libnvinfer_plugin.", "libnvonnxparser.")  
 # their inputs to TF32 (10 mantissa bits, as fp16). Seen on an H100: "fp32" outputs 1e-3 from the CPU's, as
 # far as fp16's.
 CUDA_OPTIONS = {"use_tf32": "0"}
+ORT_DTYPES = ("float32", "float16", "float64", "int64", "int32", "int16", "int8", "uint8", "bool")
 
 
 @dataclass(frozen=True)
 class EngineSpec:
     """What the TensorRT provider is told about one artifact's engines."""
 
-    input_name: str
-    sample_shape: tuple[int, ...]
+    inputs: tuple[tuple[str, tuple[int, ...]], ...]  # each graph input's name and sample shape, in order
     max_batch: int | None  # profile batches 1..max_batch; None: the model's batch size is fixed (no profile)
     cache_dir: Path
     calibrated: bool  # cache_dir holds an int8 calibration table
@@ -71,12 +71,37 @@ class EngineSpec:
             raise RuntimeError(f"{artifact_dir} was converted for TensorRT before engines were built at conversion "
                                f"(its metadata has no 'tensorrt' entry): delete it so that it is converted again")
         trt = meta["tensorrt"]
-        return cls(meta["input_name"], tuple(trt["input_shape"]), trt["max_batch"], artifact_dir / CACHE_DIR,
-                   trt["calibrated"])
+        inputs = tuple((name, tuple(shape)) for name, shape in trt["inputs"])
+        return cls(inputs, trt["max_batch"], artifact_dir / CACHE_DIR, trt["calibrated"])
 
     def to_meta(self) -> dict[str, Any]:
         """What `at_load` needs, as JSON (paths are not kept: the artifact moves after conversion)."""
-        return {"input_shape": list(self.sample_shape), "max_batch": self.max_batch, "calibrated": self.calibrated}
+        return {"inputs": [[name, list(shape)] for name, shape in self.inputs], "max_batch": self.max_batch,
+                "calibrated": self.calibrated}
+
+
+def profile_reason(inputs: Sequence[tuple[str, Sequence[int | None]]]) -> str | None:
+    """Why the TensorRT provider's shape profiles cannot name these inputs, or None: a name holding ':' or ','
+    (where the profile strings split) or a free axis (an engine is built for fixed sample shapes)."""
+    for name, shape in inputs:
+        if ":" in name or "," in name:
+            return (f"the input {name!r} cannot be named in the TensorRT provider's shape profiles, which split "
+                    f"at ':' and ','; rename the model's input")
+        if None in shape:
+            return (f"the input {name!r} has a free axis (shape {tuple(shape)} per sample) and the TensorRT "
+                    f"engines are built for fixed sample shapes; declare its length in the model's `inputs:`")
+    return None
+
+
+def feed_dtypes(session: "onnxruntime.InferenceSession") -> dict[str, np.dtype]:
+    """The numpy dtype each graph input of `session` takes ('tensor(float)' -> float32), where numpy has one."""
+    found = {}
+    for value in session.get_inputs():
+        name = value.type.removeprefix("tensor(").removesuffix(")")
+        name = {"float": "float32", "double": "float64"}.get(name, name)
+        if name in ORT_DTYPES:
+            found[value.name] = np.dtype(name)
+    return found
 
 
 def providers(target: str, precision: str, spec: EngineSpec | None = None) -> list[Provider]:
@@ -101,12 +126,16 @@ def tensorrt_options(precision: str, spec: EngineSpec) -> dict[str, str]:
     if spec.calibrated:
         options |= {"trt_int8_calibration_table_name": CALIBRATION_TABLE,
                     "trt_int8_use_native_calibration_table": "False"}
-    if spec.max_batch is not None:  # "name:1x3x66x200"; opt = max_batch, where a batch does the most work
-        sample = "x".join(str(d) for d in spec.sample_shape)
-        options |= {"trt_profile_min_shapes": f"{spec.input_name}:1x{sample}",
-                    "trt_profile_opt_shapes": f"{spec.input_name}:{spec.max_batch}x{sample}",
-                    "trt_profile_max_shapes": f"{spec.input_name}:{spec.max_batch}x{sample}"}
+    if spec.max_batch is not None:  # "name:1x3x66x200,ids:1x128"; opt = max_batch, where a batch does the most work
+        options |= {"trt_profile_min_shapes": _profile(spec.inputs, 1),
+                    "trt_profile_opt_shapes": _profile(spec.inputs, spec.max_batch),
+                    "trt_profile_max_shapes": _profile(spec.inputs, spec.max_batch)}
     return options
+
+
+def _profile(inputs: Sequence[tuple[str, Sequence[int]]], batch: int) -> str:
+    """A shape profile entry for every input at `batch`: 'image:8x3x66x200,ids:8x128'."""
+    return ",".join(f"{name}:{'x'.join(str(d) for d in (batch, *shape))}" for name, shape in inputs)
 
 
 def package() -> str:
@@ -305,11 +334,12 @@ def write_calibration_table(model: Path, reader: "CalibrationDataReader", method
     return len(ranges.data)
 
 
-def build_engines(model: Path, precision: str, threads: int, spec: EngineSpec, feeds: list[np.ndarray]) -> list[str]:
+def build_engines(model: Path, precision: str, threads: int, spec: EngineSpec, feeds: list[dict[str, np.ndarray]]
+                  ) -> list[str]:
     """Build the TensorRT engines into spec.cache_dir by running `model` once per feed; their file names."""
     session = open_session(model, "tensorrt", precision, threads, spec)
-    for x in feeds:
-        session.run(None, {spec.input_name: x})
+    for feed in feeds:
+        session.run(None, feed)
     engines = sorted(p.name for p in spec.cache_dir.glob("*.engine"))
     if not engines:
         raise RuntimeError(f"the TensorRT provider wrote no engine for {model.name} into {spec.cache_dir}: TensorRT "
@@ -323,23 +353,26 @@ def build_engines(model: Path, precision: str, threads: int, spec: EngineSpec, f
 
 
 class DeviceSession(Session):
-    """A session whose input is copied to the device once (prepare) and whose output stays there until fetch."""
+    """A session whose inputs are copied to the device once (prepare) and whose outputs stay there until fetch."""
 
-    def __init__(self, session: "onnxruntime.InferenceSession", input_name: str, device: str):
+    def __init__(self, session: "onnxruntime.InferenceSession", feeds: dict[str, str], device: str):
         self._session = session
         self._run = session.run_with_iobinding
-        self._input = input_name
-        self._output = session.get_outputs()[0].name
+        self._feeds = feeds  # source input name -> graph input name
+        self._dtypes = feed_dtypes(session)
+        self._outputs = [value.name for value in session.get_outputs()]
         self._device = device
 
-    def prepare(self, x: np.ndarray) -> "onnxruntime.IOBinding":
+    def prepare(self, inputs: dict[str, np.ndarray]) -> "onnxruntime.IOBinding":
         import onnxruntime as ort
 
-        value = ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(x, dtype=np.float32), self._device, 0)
         binding = self._session.io_binding()
-        binding.bind_ortvalue_input(self._input, value)
-        binding.bind_output(self._output, self._device, 0)
-        binding.synchronize_inputs()  # the copy has landed before anything is timed
+        for name, graph in self._feeds.items():
+            array = np.ascontiguousarray(inputs[name], dtype=self._dtypes.get(graph))
+            binding.bind_ortvalue_input(graph, ort.OrtValue.ortvalue_from_numpy(array, self._device, 0))
+        for output in self._outputs:
+            binding.bind_output(output, self._device, 0)
+        binding.synchronize_inputs()  # the copies have landed before anything is timed
         return binding
 
     def execute(self, prepared: "onnxruntime.IOBinding") -> "onnxruntime.IOBinding":
@@ -349,8 +382,8 @@ class DeviceSession(Session):
         self._run(prepared)
         return prepared
 
-    def fetch(self, outputs: "onnxruntime.IOBinding") -> np.ndarray:
-        return np.asarray(outputs.copy_outputs_to_cpu()[0], dtype=np.float32)
+    def fetch(self, outputs: "onnxruntime.IOBinding") -> list[np.ndarray]:
+        return [np.asarray(out, dtype=np.float32) for out in outputs.copy_outputs_to_cpu()]
 
     def info(self) -> dict[str, Any]:
         return {"providers": self._session.get_providers(),

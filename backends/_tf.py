@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import importlib.util
+from collections.abc import Sequence
+from typing import Any
 
 from bench_matrix import hardware
 from bench_matrix.measure.env import installed_versions
@@ -59,3 +61,8 @@ def probe_tftrt(precision: str = "fp32") -> str | None:
                        f"(tf.sysconfig.get_build_info()['is_tensorrt_build'] is False): pip wheels never are; "
                        f"NVIDIA's TensorFlow containers (nvcr.io/nvidia/tensorflow) are")
     return "; ".join(reasons) or None
+
+
+def keras_arguments(tensors: Sequence[Any]) -> Any:
+    """What a Keras model is called with: its one input alone, or the list of its inputs in model.inputs order."""
+    return tensors[0] if len(tensors) == 1 else list(tensors)

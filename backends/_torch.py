@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import warnings
-from collections.abc import Iterator
-from contextlib import contextmanager, suppress
+from collections.abc import Sequence
+from contextlib import suppress
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -12,7 +11,12 @@ import numpy as np
 from bench_matrix import hardware
 from bench_matrix.backends.base import Backend, Session
 from bench_matrix.measure.env import installed_versions
+from bench_matrix.sources.pytorch import quiet_torch, use_engine
+from bench_matrix.tensors import Inputs, TensorSpec, example_inputs
 
+from ._common import flat_outputs
+
+__all__ = ["quiet_torch", "use_engine"]  # re-exported for the torch backends
 
 if TYPE_CHECKING:
     import torch
@@ -77,34 +81,6 @@ def exact_fp32() -> None:
         torch.backends.cudnn.allow_tf32 = False
 
 
-def use_engine(engine: str | None = None) -> str:
-    """Select the quantised engine (`engine`, or x86 where supported, else fbgemm) and return its name."""
-    import torch
-
-    supported = torch.backends.quantized.supported_engines
-    engine = engine or ("x86" if "x86" in supported else "fbgemm")
-    if engine not in supported:
-        raise RuntimeError(f"the artifact was quantised for torch's {engine!r} engine, which torch "
-                           f"{torch.__version__} here lacks (it has {', '.join(supported)}); convert it again")
-    torch.backends.quantized.engine = engine
-    return engine
-
-
-@contextmanager
-def quiet_torch(captured: bool = False) -> Iterator[None]:
-    """Silence torch's deprecation notices (torch.ao, torch.jit, the TorchScript ONNX exporter); `captured`
-    also silences the tracer's notes on tensor-to-Python conversions, harmless in an already captured graph
-    (an FX-quantised model's scales, a torch.export program's shape guards)."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", category=DeprecationWarning)
-        warnings.filterwarnings("ignore", category=FutureWarning)
-        warnings.filterwarnings("ignore", message="(reduce_range will be deprecated|no signature found for"
-                                                  "|torch.quantize_per_tensor)")
-        if captured:
-            warnings.filterwarnings("ignore", message="Converting a tensor to a Python")
-        yield
-
-
 def place(module: "torch.nn.Module", target: str, precision: str) -> "torch.nn.Module":
     """The module on the target's device (a GPU for cuda and tensorrt), in the precision's dtype."""
     import torch
@@ -115,8 +91,53 @@ def place(module: "torch.nn.Module", target: str, precision: str) -> "torch.nn.M
     return module if dtype == torch.float32 else module.to(dtype)
 
 
+def as_tensors(inputs: Inputs, device: "torch.device | str", dtype: "torch.dtype") -> tuple["torch.Tensor", ...]:
+    """Every input as a tensor on `device`, in the inputs' order: floating ones (read as float32) in `dtype`,
+    integer ones (token ids, masks) in their own dtype."""
+    import torch
+
+    tensors = []
+    for array in inputs.values():
+        if np.issubdtype(array.dtype, np.floating):
+            tensors.append(torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32)).to(device, dtype))
+        else:
+            tensors.append(torch.from_numpy(np.ascontiguousarray(array)).to(device))
+    return tuple(tensors)
+
+
+def example_tensors(specs: Sequence[TensorSpec], device: str, dtype: "torch.dtype", seed: int,
+                    batch: int = 2) -> tuple["torch.Tensor", ...]:
+    """A batch to trace or export with (2 samples, not 1, so that nothing specialises on a size-1 batch)."""
+    return as_tensors(example_inputs(specs, batch, seed), device, dtype)
+
+
+def flat_module(module: "torch.nn.Module", example: tuple["torch.Tensor", ...]) -> tuple["torch.nn.Module", int]:
+    """`module` itself when it returns one tensor, else a module returning its outputs as a flat tuple in
+    flat_outputs' order (dicts by sorted key), so that traces and exports see the order sessions fetch in; with
+    how many outputs it returns."""
+    import torch
+
+    with torch.no_grad():
+        outputs = module(*example)
+    if isinstance(outputs, torch.Tensor):
+        return module, 1
+
+    class FlatOutputs(torch.nn.Module):
+        def __init__(self, inner: torch.nn.Module):
+            super().__init__()
+            self.inner = inner
+
+        def forward(self, *args: torch.Tensor) -> tuple[torch.Tensor, ...]:
+            return tuple(flat_outputs(self.inner(*args)))
+
+    flat = FlatOutputs(module)
+    flat.training = False  # set, not .eval(): a torch.export module refuses train() and eval()
+    return flat, len(flat_outputs(outputs))
+
+
 class TorchSession(Session):
-    """A torch module (eager, TorchScript or Torch-TensorRT) run under inference_mode on the CPU or one GPU."""
+    """A torch module (eager, TorchScript or Torch-TensorRT) run under inference_mode on the CPU or one GPU; the
+    module is called with every input positionally, in the inputs' order."""
 
     def __init__(self, module: "torch.nn.Module", target: str, precision: str, facts: dict[str, Any] | None = None):
         import torch
@@ -130,22 +151,21 @@ class TorchSession(Session):
         if self._sync:
             exact_fp32()
 
-    def prepare(self, x: np.ndarray) -> "torch.Tensor":
-        """The batch on the device in the module's dtype: copied to the GPU here, outside the timed call."""
-        tensor = self._torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))
-        return tensor.to(self._device, self._dtype)
+    def prepare(self, inputs: Inputs) -> tuple["torch.Tensor", ...]:
+        """The batch on the device (floating inputs in the module's dtype): copied to the GPU here, outside the
+        timed call."""
+        return as_tensors(inputs, self._device, self._dtype)
 
-    def execute(self, prepared: "torch.Tensor") -> Any:
+    def execute(self, prepared: tuple["torch.Tensor", ...]) -> Any:
         with self._torch.inference_mode():
-            out = self._module(prepared)
+            out = self._module(*prepared)
         if self._sync:
             self._torch.cuda.synchronize()
         return out
 
-    def fetch(self, outputs: Any) -> np.ndarray:
-        """The first output as a float32 host array (copied back from the GPU)."""
-        out = outputs[0] if isinstance(outputs, (tuple, list)) else outputs
-        return out.float().cpu().numpy()
+    def fetch(self, outputs: Any) -> list[np.ndarray]:
+        """Every output (flat_outputs' order) as a float32 host array, copied back from the GPU."""
+        return [out.float().cpu().numpy() for out in flat_outputs(outputs)]
 
     def info(self) -> dict[str, Any]:
         info = {"device": str(self._device), "threads": self._torch.get_num_threads(),

@@ -7,7 +7,6 @@ from pathlib import Path
 from typing import Any
 
 from bench_matrix.backends.base import ConvertRequest, Session, Support
-from bench_matrix.matrix.expand import conversion_step
 from bench_matrix.sources import SourceModel
 
 from ._torch import TorchBackend, TorchSession, pin_threads, place
@@ -23,7 +22,7 @@ class PyTorchBackend(TorchBackend):
     baseline_for = ("pytorch",)
 
     def convert(self, request: ConvertRequest) -> dict[str, Any]:
-        step = conversion_step(request.strategy)
+        step = request.step
         if step.kind != "none":
             raise ValueError(f"the pytorch backend runs the model as it is; strategy kind {step.kind!r} "
                              f"needs another backend (torchscript, onnxruntime or torch_tensorrt)")

@@ -10,11 +10,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
-from bench_matrix.matrix.expand import conversion_step
 from bench_matrix.sources import SourceModel
 from bench_matrix.sources.tensorflow import tensorflow, thread_settings
+from bench_matrix.tensors import Inputs, TensorSpec, example_inputs
 
-from ._tf import missing_tensorflow, probe_tensorflow_gpu, tf_versions
+from ._common import flat_outputs
+from ._tf import keras_arguments, missing_tensorflow, probe_tensorflow_gpu, tf_versions
 
 if TYPE_CHECKING:
     import tensorflow as tf
@@ -40,7 +41,7 @@ class TensorFlowBackend(Backend):
 
     def convert(self, request: ConvertRequest) -> dict[str, Any]:
         """Copy the source model (a file, or a SavedModel directory) into the artifact unchanged."""
-        step = conversion_step(request.strategy)
+        step = request.step
         if step.kind != "none":
             raise ValueError(f"the {self.name} backend runs the Keras model as it is; strategy kind {step.kind!r} "
                              f"needs another backend (tflite, or tftrt on a GPU)")
@@ -60,7 +61,7 @@ class TensorFlowBackend(Backend):
         source = artifact_source(artifact_dir, meta)
         with tf.device(DEVICES[target]):
             model = source.load()
-        return FunctionSession(model, source.input_shape, target)
+        return FunctionSession(model, source.inputs, target)
 
 
 class KerasPredictBackend(TensorFlowBackend):
@@ -77,7 +78,7 @@ class KerasPredictBackend(TensorFlowBackend):
         source = artifact_source(artifact_dir, meta)
         with tf.device(DEVICES["cpu"]):
             model = source.load()
-        return PredictSession(model, source.input_shape)
+        return PredictSession(model, source.inputs)
 
 
 def artifact_source(artifact_dir: Path, meta: dict[str, Any]) -> SourceModel:
@@ -86,36 +87,37 @@ def artifact_source(artifact_dir: Path, meta: dict[str, Any]) -> SourceModel:
 
 
 class FunctionSession(Session):
-    """The model's call as one concrete function (float32 input, any batch), traced and run once in __init__."""
+    """The model's call as one concrete function (every input in its dtype, any batch), traced and run once in
+    __init__; inputs go to the model in its input order, outputs come back in flat_outputs' order."""
 
-    def __init__(self, model: Any, input_shape: tuple[int, ...], target: str):
+    def __init__(self, model: Any, inputs: tuple[TensorSpec, ...], target: str):
         tf = tensorflow()
         self._tf = tf
         self._model = model  # the concrete function captures only the variables' handles: keep them alive
         self._device = DEVICES[target]
         self._sync = tf.test.experimental.sync_devices if target == "cuda" else None
 
-        def call(x: "tf.Tensor") -> "tf.Tensor":
-            return model(x, training=False)
+        def call(*tensors: "tf.Tensor") -> Any:
+            return model(keras_arguments(tensors), training=False)
 
-        spec = tf.TensorSpec([None, *input_shape], tf.float32)
+        specs = [tf.TensorSpec([None, *spec.shape], _tf_dtype(tf, spec.dtype)) for spec in inputs]
         with tf.device(self._device):  # the traced graph's ops keep this placement
-            self._call = tf.function(call, input_signature=[spec]).get_concrete_function()
-        first = self.execute(self.prepare(np.zeros((1, *input_shape), np.float32)))
-        self._output_device = first.device
+            self._call = tf.function(call, input_signature=specs).get_concrete_function()
+        first = flat_outputs(self.execute(self.prepare(example_inputs(inputs, batch=1))))
+        self._output_device = first[0].device
 
-    def prepare(self, x: np.ndarray) -> "tf.Tensor":
+    def prepare(self, inputs: Inputs) -> list["tf.Tensor"]:
         with self._tf.device(self._device):
-            return self._tf.identity(np.ascontiguousarray(x, dtype=np.float32))
+            return [self._tf.identity(_host(array)) for array in inputs.values()]
 
-    def execute(self, prepared: "tf.Tensor") -> "tf.Tensor":
-        out = self._call(prepared)
+    def execute(self, prepared: list["tf.Tensor"]) -> Any:
+        out = self._call(*prepared)
         if self._sync:
             self._sync()
         return out
 
-    def fetch(self, outputs: "tf.Tensor") -> np.ndarray:
-        return np.asarray(outputs.numpy(), dtype=np.float32)
+    def fetch(self, outputs: Any) -> list[np.ndarray]:
+        return [np.asarray(out.numpy(), dtype=np.float32) for out in flat_outputs(outputs)]
 
     def info(self) -> dict[str, Any]:
         facts = {"device": self._device, "output_device": self._output_device, "call_path": "tf.function",
@@ -126,19 +128,32 @@ class FunctionSession(Session):
 
 
 class PredictSession(Session):
-    """model.predict on the host array, on the CPU; one call in __init__ builds Keras' predict function."""
+    """model.predict on the host arrays, on the CPU; one call in __init__ builds Keras' predict function."""
 
-    def __init__(self, model: Any, input_shape: tuple[int, ...]):
+    def __init__(self, model: Any, inputs: tuple[TensorSpec, ...]):
         self._tf = tensorflow()
         self._model = model
-        self.execute(np.zeros((1, *input_shape), np.float32))
+        self.execute(self.prepare(example_inputs(inputs, batch=1)))
 
-    def prepare(self, x: np.ndarray) -> np.ndarray:
-        return np.ascontiguousarray(x, dtype=np.float32)
+    def prepare(self, inputs: Inputs) -> Any:
+        return keras_arguments([_host(array) for array in inputs.values()])
 
-    def execute(self, prepared: np.ndarray) -> np.ndarray:
+    def execute(self, prepared: Any) -> Any:
         with self._tf.device(DEVICES["cpu"]):
             return self._model.predict(prepared, verbose=0)
 
+    def fetch(self, outputs: Any) -> list[np.ndarray]:
+        return [np.asarray(out, dtype=np.float32) for out in flat_outputs(outputs)]
+
     def info(self) -> dict[str, Any]:
         return {"device": DEVICES["cpu"], "call_path": "model.predict", **thread_settings()}
+
+
+def _host(array: np.ndarray) -> np.ndarray:
+    """A contiguous host array, floating ones as float32."""
+    return np.ascontiguousarray(array, dtype=np.float32 if np.issubdtype(array.dtype, np.floating) else None)
+
+
+def _tf_dtype(tf: Any, dtype: str) -> Any:
+    """The TensorFlow dtype a Keras input of `dtype` is fed in (bfloat16 inputs are fed as float32 arrays)."""
+    return tf.float32 if dtype == "bfloat16" else tf.as_dtype(dtype)

@@ -12,12 +12,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
-from bench_matrix.matrix.expand import conversion_step
 from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.sources.tensorflow import tensorflow, thread_settings
+from bench_matrix.tensors import Inputs, TensorSpec, concrete, count, take
 
-from ._common import calibration_data, static_options_reason
-from ._tf import probe_tftrt, tf_versions
+from ._common import calibration_data, flat_outputs, static_options_reason
+from ._tf import keras_arguments, probe_tftrt, tf_versions
 
 if TYPE_CHECKING:
     import tensorflow as tf
@@ -65,37 +65,36 @@ class TFTRTBackend(Backend):
         return None
 
     def convert(self, request: ConvertRequest) -> dict[str, Any]:
-        step = conversion_step(request.strategy)
-        if reason := self.option_reason(step, request.source.format):
-            raise ValueError(reason)
+        step = request.step
         tf = tensorflow(request.threads)
         from tensorflow.python.compiler.tensorrt import trt_convert as trt
 
         mode = MODES[request.precision]
-        shape = request.source.input_shape
+        inputs = request.source.inputs
         meta: dict[str, Any] = {"precision_mode": mode, "strategy": step.kind, "built_batches": list(BUILD_BATCHES),
                                 "maximum_cached_engines": MAX_ENGINES,
                                 "max_workspace_size_bytes": trt.DEFAULT_TRT_MAX_WORKSPACE_SIZE_BYTES}
         with tempfile.TemporaryDirectory(prefix="bench-matrix-tftrt-") as tmp:
             saved = Path(tmp) / "saved_model"
-            export_serving(request.source.load(), shape, saved)
+            export_serving(request.source.load(), inputs, saved)
             converter = trt.TrtGraphConverterV2(input_saved_model_dir=str(saved), precision_mode=mode,
                                                 maximum_cached_engines=MAX_ENGINES, use_calibration=mode == "INT8")
             if mode == "INT8":
                 data = calibration_data(request, step)
                 # Batches of one: calibration builds the batch-1 engine, and build() below adds the batch-32 one
                 # from the same calibration table.
-                converted = converter.convert(
-                    calibration_input_fn=lambda: ((tf.constant(sample[None]),) for sample in data))
+                converted = converter.convert(calibration_input_fn=lambda: (
+                    tuple(tf.constant(a) for a in take(data, slice(i, i + 1)).values()) for i in range(count(data))))
                 meta["calibration"] = {"method": "entropy", "calibrator": CALIBRATOR,
-                                       "calibration_samples": len(data), "batch": 1}
+                                       "calibration_samples": count(data), "batch": 1}
             else:
                 converted = converter.convert()
             meta["engine_ops"] = engine_ops(converted.graph.as_graph_def())
             if not meta["engine_ops"]:
                 raise RuntimeError(f"TF-TRT found no subgraph of {request.source.path} that TensorRT can run (no "
                                    f"TRTEngineOp in the converted graph): the cell would measure plain TensorFlow")
-            converter.build(input_fn=lambda: ((tf.zeros((n, *shape)),) for n in BUILD_BATCHES))
+            converter.build(input_fn=lambda: (tuple(tf.zeros((n, *concrete(spec.shape)), _dtype(tf, spec))
+                                                    for spec in inputs) for n in BUILD_BATCHES))
             with _temporary_files_in(tmp):  # save() serialises the engines into a mkdtemp() it never removes
                 converter.save(str(request.out_dir))
         return meta
@@ -109,18 +108,31 @@ class TFTRTBackend(Backend):
         return SignatureSession(loaded, DEVICE, facts)
 
 
-def export_serving(model: Any, input_shape: tuple[int, ...], directory: Path) -> None:
-    """Save the Keras model's inference call as a SavedModel whose serving signature takes float32 `input`
-    batches of any size and returns {"output": ...}."""
+def export_serving(model: Any, inputs: tuple[TensorSpec, ...], directory: Path) -> None:
+    """Save the Keras model's inference call as a SavedModel whose serving signature takes batches of any size of
+    every input (`input`, or input_0.. for several) and returns {"output": ...} (output_0.. in flat_outputs' order
+    for several)."""
     tf = tensorflow()
+    names = _names("input", len(inputs))
+    specs = [tf.TensorSpec([None, *spec.shape], _dtype(tf, spec), name=name) for spec, name in zip(inputs, names)]
 
-    @tf.function(input_signature=[tf.TensorSpec([None, *input_shape], tf.float32, name="input")])
-    def serve(x: "tf.Tensor") -> dict[str, "tf.Tensor"]:
-        return {"output": model(x, training=False)}
+    @tf.function(input_signature=specs)
+    def serve(*tensors: "tf.Tensor") -> dict[str, "tf.Tensor"]:
+        outputs = flat_outputs(model(keras_arguments(tensors), training=False))
+        return dict(zip(_names("output", len(outputs)), outputs))
 
     root = tf.Module()
     root.model_variables = list(model.variables)  # the variables the signature captures, without Keras' objects
     tf.saved_model.save(root, str(directory), signatures={SIGNATURE: serve.get_concrete_function()})
+
+
+def _names(what: str, n: int) -> list[str]:
+    """'input' for one tensor, input_0.. for several."""
+    return [what] if n == 1 else [f"{what}_{i}" for i in range(n)]
+
+
+def _dtype(tf: Any, spec: TensorSpec) -> Any:
+    return tf.float32 if spec.dtype == "bfloat16" else tf.as_dtype(spec.dtype)
 
 
 def engine_ops(graph_def: Any) -> int:
@@ -130,7 +142,8 @@ def engine_ops(graph_def: Any) -> int:
 
 
 class SignatureSession(Session):
-    """A SavedModel's serving signature with one float32 input and one output, run on `device`."""
+    """A SavedModel's serving signature (export_serving's names) run on `device`: inputs fed in order, every
+    output returned in order."""
 
     def __init__(self, loaded: Any, device: str, facts: dict[str, Any]):
         tf = tensorflow()
@@ -138,21 +151,24 @@ class SignatureSession(Session):
         self._loaded = loaded  # the signature's resources (engines, variables) live as long as this object
         self._function = loaded.signatures[SIGNATURE]
         _, inputs = self._function.structured_input_signature
-        outputs = self._function.structured_outputs
-        if len(inputs) != 1 or len(outputs) != 1:
+        self._inputs = _names("input", len(inputs))
+        self._outputs = _names("output", len(self._function.structured_outputs))
+        if sorted(self._inputs) != sorted(inputs) or sorted(self._outputs) != sorted(self._function.structured_outputs):
             raise ValueError(f"the {SIGNATURE} signature has inputs {sorted(inputs)} and outputs "
-                             f"{sorted(outputs)}; bench-matrix runs models with one input and one output")
-        ((self._input, spec),) = inputs.items()
-        (self._output,) = outputs
+                             f"{sorted(self._function.structured_outputs)}, not the ones bench-matrix exports")
         self._device = device
         self._sync = tf.test.experimental.sync_devices if "GPU" in device else None
         self._facts = facts
         # The first call loads the engines (or builds any missing one): part of load time, never of a timed call.
-        self.execute(self.prepare(np.zeros((1, *spec.shape[1:]), np.float32)))
+        first = {name: np.zeros((1, *(d or 1 for d in spec.shape[1:])), spec.dtype.as_numpy_dtype)
+                 for name, spec in inputs.items()}
+        self.execute(self.prepare({name: first[name] for name in self._inputs}))
 
-    def prepare(self, x: np.ndarray) -> dict[str, "tf.Tensor"]:
+    def prepare(self, inputs: Inputs) -> dict[str, "tf.Tensor"]:
         with self._tf.device(self._device):
-            return {self._input: self._tf.identity(np.ascontiguousarray(x, dtype=np.float32))}
+            return {name: self._tf.identity(np.ascontiguousarray(
+                array, dtype=np.float32 if np.issubdtype(array.dtype, np.floating) else None))
+                for name, array in zip(self._inputs, inputs.values())}
 
     def execute(self, prepared: dict[str, "tf.Tensor"]) -> dict[str, "tf.Tensor"]:
         out = self._function(**prepared)
@@ -160,8 +176,8 @@ class SignatureSession(Session):
             self._sync()
         return out
 
-    def fetch(self, outputs: dict[str, "tf.Tensor"]) -> np.ndarray:
-        return np.asarray(outputs[self._output].numpy(), dtype=np.float32)
+    def fetch(self, outputs: dict[str, "tf.Tensor"]) -> list[np.ndarray]:
+        return [np.asarray(outputs[name].numpy(), dtype=np.float32) for name in self._outputs]
 
     def info(self) -> dict[str, Any]:
         return {"device": self._device, "call_path": f"SavedModel signature {SIGNATURE}", **self._facts,

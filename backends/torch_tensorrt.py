@@ -12,15 +12,16 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 
 from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
-from bench_matrix.matrix.expand import conversion_step
 from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.measure.env import installed_versions
+from bench_matrix.sources import SourceModel
+from bench_matrix.tensors import TensorSpec, count, example_inputs, specs_from_list, specs_to_list
 
 from ._common import batches, calibration_data, static_options_reason
-from ._torch import TorchSession, cuda_reasons, pin_threads, place, quiet_torch, torch_dtype
+from ._torch import TorchSession, as_tensors, cuda_reasons, example_tensors, pin_threads, place, quiet_torch, \
+    torch_dtype
 
 if TYPE_CHECKING:
     import torch
@@ -88,15 +89,15 @@ class TorchTensorRTBackend(Backend):
         return static_options_reason(step, "Torch-TensorRT", ("minmax",))
 
     def convert(self, request: ConvertRequest) -> dict[str, Any]:
-        step = conversion_step(request.strategy)
-        if reason := self.option_reason(step, request.source.format):
+        step = request.step
+        if reason := free_axes_reason(request.source):
             raise ValueError(reason)
         import torch
 
         torch.set_num_threads(request.threads)
-        shape = tuple(request.source.input_shape)
+        inputs = request.source.inputs
         dtype = torch_dtype(request.precision)
-        meta: dict[str, Any] = {"file": FILE, "strategy": step.kind, "input_shape": list(shape),
+        meta: dict[str, Any] = {"file": FILE, "strategy": step.kind, "inputs": specs_to_list(inputs),
                                 "profile": {"min": 1, "opt": 1, "max": request.max_batch}}
         with quiet_torch(captured=True):
             import torch_tensorrt
@@ -106,9 +107,9 @@ class TorchTensorRTBackend(Backend):
                 meta["quantization"] = _quantise(module, step, request)
             options = compile_options(torch_tensorrt.dynamo.compile, request.precision)
             with _export_mode(step.kind), torch.no_grad():
-                program, example = export(module, shape, request.max_batch, "cuda", dtype, request.seed)
-                compiled = torch_tensorrt.dynamo.compile(
-                    program, inputs=[input_spec(torch_tensorrt, shape, request.max_batch, dtype)], **options)
+                program, example = export(module, inputs, request.max_batch, "cuda", dtype, request.seed)
+                specs = [input_spec(torch_tensorrt, spec, request.max_batch, dtype) for spec in inputs]
+                compiled = torch_tensorrt.dynamo.compile(program, inputs=specs, **options)
             meta["compile_options"] = {key: _plain(value) for key, value in options.items()}
             meta.update(blocks(compiled))
             if not meta["engines"]:
@@ -116,7 +117,7 @@ class TorchTensorRTBackend(Backend):
                                    f"_run_on_acc module in the compiled graph): the cell would measure plain PyTorch")
             # retrace=False serialises the compiled graph as it is, keeping its dynamic batch dimension.
             torch_tensorrt.save(compiled, str(request.out_dir / FILE), output_format="exported_program",
-                                inputs=[example], retrace=False)
+                                inputs=list(example), retrace=False)
         return meta
 
     def load(self, artifact_dir: Path, meta: dict[str, Any], target: str, precision: str,
@@ -130,8 +131,18 @@ class TorchTensorRTBackend(Backend):
                  if key in meta}
         session = TorchSession(module, target, precision, facts)
         # The first call sets the engines up on this GPU: part of load time, never of a timed call.
-        session.execute(session.prepare(np.zeros((1, *meta["input_shape"]), np.float32)))
+        session.execute(session.prepare(example_inputs(specs_from_list(meta["inputs"]), batch=1)))
         return session
+
+
+def free_axes_reason(source: SourceModel) -> str | None:
+    """Why the engines cannot be built for this model's inputs: a free axis (engines are built for fixed sample
+    shapes), or None."""
+    free = [spec.describe() for spec in source.inputs if None in spec.shape]
+    if not free:
+        return None
+    return (f"{source.label}: torch_tensorrt builds engines for fixed sample shapes, but input {', '.join(free)} "
+            f"has a free axis; declare its length in the model's `inputs:`")
 
 
 def torch_tensorrt_version() -> str | None:
@@ -165,24 +176,32 @@ def compile_options(compile_fn: Callable[..., Any], precision: str) -> dict[str,
     return options
 
 
-def export(module: "torch.nn.Module", input_shape: tuple[int, ...], max_batch: int, device: str,
-           dtype: "torch.dtype", seed: int) -> tuple["torch.export.ExportedProgram", "torch.Tensor"]:
-    """`module` captured by torch.export for batches 1..max_batch, and the example batch it was traced with."""
+def export(module: "torch.nn.Module", inputs: tuple[TensorSpec, ...], max_batch: int, device: str,
+           dtype: "torch.dtype", seed: int) -> tuple["torch.export.ExportedProgram", tuple["torch.Tensor", ...]]:
+    """`module` captured by torch.export for batches 1..max_batch (every input's batch axis the same dimension),
+    and the example batch it was traced with."""
     import torch
 
-    generator = torch.Generator().manual_seed(seed)
     # A batch of 2, not 1: torch.export specialises a dimension whose example size is 1.
-    example = torch.rand((min(2, max_batch), *input_shape), generator=generator).to(device, dtype)
-    dynamic = ({0: torch.export.Dim("batch", min=1, max=max_batch)},) if max_batch > 1 else None
-    return torch.export.export(module, (example,), dynamic_shapes=dynamic, strict=False), example
+    example = example_tensors(inputs, device, dtype, seed, batch=min(2, max_batch))
+    dynamic = None
+    if max_batch > 1:
+        batch = torch.export.Dim("batch", min=1, max=max_batch)
+        dynamic = tuple({0: batch} for _ in inputs)
+    return torch.export.export(module, example, dynamic_shapes=dynamic, strict=False), example
 
 
-def input_spec(torch_tensorrt: Any, input_shape: tuple[int, ...], max_batch: int, dtype: "torch.dtype") -> Any:
-    """The engine's input: batches 1..max_batch, kernels tuned for batch 1 (the latency runs)."""
+def input_spec(torch_tensorrt: Any, spec: TensorSpec, max_batch: int, dtype: "torch.dtype") -> Any:
+    """An engine input: batches 1..max_batch, kernels tuned for batch 1 (the latency runs); floating inputs in the
+    precision's dtype, integer ones in their own."""
+    import torch
+
+    dtype = getattr(torch, spec.dtype) if spec.is_integer else dtype
+    shape = tuple(int(d) for d in spec.shape)
     if max_batch == 1:
-        return torch_tensorrt.Input(shape=(1, *input_shape), dtype=dtype)
-    return torch_tensorrt.Input(min_shape=(1, *input_shape), opt_shape=(1, *input_shape),
-                                max_shape=(max_batch, *input_shape), dtype=dtype)
+        return torch_tensorrt.Input(shape=(1, *shape), dtype=dtype)
+    return torch_tensorrt.Input(min_shape=(1, *shape), opt_shape=(1, *shape), max_shape=(max_batch, *shape),
+                                dtype=dtype)
 
 
 def blocks(compiled: "torch.nn.Module") -> dict[str, int]:
@@ -202,12 +221,12 @@ def _quantise(module: "torch.nn.Module", step: StrategySpec, request: ConvertReq
     def forward_loop(model: "torch.nn.Module") -> None:
         with torch.no_grad():
             for batch in batches(data):
-                model(torch.from_numpy(batch).to("cuda"))
+                model(*as_tensors(batch, "cuda", torch.float32))
 
     mtq.quantize(module, mtq.INT8_DEFAULT_CFG, forward_loop=forward_loop)
     return {"library": "NVIDIA ModelOpt", "config": "INT8_DEFAULT_CFG", "weights": "int8 per output channel",
             "activations": "int8 per tensor", "per_channel": True, "method": "minmax",
-            "calibrator": "ModelOpt max (absolute maximum, symmetric)", "calibration_samples": len(data)}
+            "calibrator": "ModelOpt max (absolute maximum, symmetric)", "calibration_samples": count(data)}
 
 
 def _export_mode(kind: str) -> AbstractContextManager[Any]:

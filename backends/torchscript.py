@@ -6,11 +6,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bench_matrix.backends.base import ConvertRequest, Session, Support
-from bench_matrix.matrix.expand import backend_kind
 from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.tensors import count, take
 
 from ._common import batches, calibration_data, static_options_reason
-from ._torch import TorchBackend, TorchSession, pin_threads, place, quiet_torch, torch_dtype, use_engine
+from ._torch import TorchBackend, TorchSession, as_tensors, example_tensors, flat_module, pin_threads, place, \
+    quiet_torch, torch_dtype, use_engine
 
 if TYPE_CHECKING:
     import torch
@@ -42,9 +43,7 @@ class TorchScriptBackend(TorchBackend):
     def convert(self, request: ConvertRequest) -> dict[str, Any]:
         import torch
 
-        step = backend_kind(request.strategy)
-        if reason := self.option_reason(step, request.source.format):
-            raise ValueError(reason)
+        step = request.step
         torch.set_num_threads(request.threads)
         meta: dict[str, Any] = {"file": FILE, "strategy": step.kind}
         with quiet_torch(captured=step.kind != "none" or request.source.format == "torch_export"):
@@ -54,13 +53,11 @@ class TorchScriptBackend(TorchBackend):
             elif step.kind != "none":
                 module, meta["quantization"] = _quantise(module, step, request)
             module = place(module, request.target, request.precision)
-            device, dtype = ("cpu" if request.target == "cpu" else "cuda"), torch_dtype(request.precision)
-            generator = torch.Generator().manual_seed(request.seed)
-            # A batch of 2, not 1, so that nothing in the trace specialises on a size-1 batch.
-            example = torch.rand((2, *request.source.input_shape), generator=generator).to(device, dtype)
+            device = "cpu" if request.target == "cpu" else "cuda"
+            example = example_tensors(request.source.inputs, device, torch_dtype(request.precision), request.seed)
             if not isinstance(module, torch.jit.ScriptModule):  # a TorchScript source is saved as it is
                 with torch.no_grad():
-                    module = torch.jit.trace(module, example)
+                    module = torch.jit.trace(flat_module(module, example)[0], example)
             module.save(str(request.out_dir / FILE))
         return meta
 
@@ -98,7 +95,7 @@ def _quantise(module: "torch.nn.Module", step: StrategySpec,
     weight = tq.default_per_channel_weight_observer if per_channel else tq.default_weight_observer
     mapping = tq.get_default_qconfig_mapping(engine).set_global(tq.QConfig(activation=activation, weight=weight))
     data = calibration_data(request, step)
-    example = (torch.from_numpy(data[:1]),)
+    example = as_tensors(take(data, slice(0, 1)), "cpu", torch.float32)
     try:
         prepared = prepare_fx(module, mapping, example_inputs=example)
     except Exception as exc:  # symbolic tracing fails on data-dependent Python control flow
@@ -106,6 +103,6 @@ def _quantise(module: "torch.nn.Module", step: StrategySpec,
                          f"{type(exc).__name__}: {exc}") from exc
     with torch.no_grad():
         for batch in batches(data):
-            prepared(torch.from_numpy(batch))
-    settings.update(activations="quint8 [0, 127]", method="minmax", calibration_samples=len(data))
+            prepared(*as_tensors(batch, "cpu", torch.float32))
+    settings.update(activations="quint8 [0, 127]", method="minmax", calibration_samples=count(data))
     return convert_fx(prepared), settings

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Literal
+
+from bench_matrix.matrix.spec import StrategySpec
 
 PlanState = Literal["run", "skip", "invalid"]
 
@@ -33,10 +36,21 @@ class Cell:
         return " ".join(parts + ([] if self.target == "cpu" else [self.target]))
 
 
+NO_STEP = StrategySpec(name="none", kind="none")
+
+
 @dataclass(frozen=True)
-class PlannedCell:
-    """A cell and what `run` will do with it: run it, skip it (why), or reject it as invalid (why)."""
+class CellPlan:
+    """A cell decided once, in the parent: what `run` does with it (run, skip or reject, and why), the
+    conversion step its backend performs, the fine-tuning before it and by whom, its baseline cell, its log and
+    the fingerprint of everything that determines its result."""
 
     cell: Cell
     state: PlanState
     reason: str | None = None
+    step: StrategySpec = NO_STEP  # what the backend is asked to do (conversion kind, or QAT kind), with options
+    training: tuple[StrategySpec, ...] = ()  # fine-tuning steps applied first, in order
+    trainer: str | None = None  # the trainer that applies them
+    baseline: Cell | None = None  # the model's fp32 reference cell
+    log: Path | None = field(default=None, compare=False)
+    fingerprint: str = ""

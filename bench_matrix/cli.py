@@ -72,7 +72,10 @@ def _parser() -> argparse.ArgumentParser:
     backends = sub.add_parser("backends", help="installed backends, what they support, what this machine can run")
     backends.set_defaults(handler=_backends)
 
-    schema = sub.add_parser("schema", help="print the JSON Schema of matrix files")
+    schema = sub.add_parser("schema", help="print the JSON Schema of matrix files, with what the installed "
+                                           "backends and metric plugins declare")
+    schema.add_argument("--builtin", action="store_true",
+                        help="the built-in schema only (docs/matrix.schema.json), without installed plugins")
     schema.set_defaults(handler=_schema)
     return parser
 
@@ -141,7 +144,8 @@ def _load(args: argparse.Namespace):
 
 
 def _run(args: argparse.Namespace, console) -> int:
-    from bench_matrix.runner import Runner, resolve
+    from bench_matrix.plan import resolve
+    from bench_matrix.runner import Runner
     from bench_matrix.store import ResultStore
 
     matrix, ws = _load(args)
@@ -152,11 +156,11 @@ def _run(args: argparse.Namespace, console) -> int:
     console.print(f"[bold]bench-matrix {__version__}[/] · {matrix.path} · results in "
                   f"{args.results or ws.results}", highlight=False)
     try:
-        planned = resolve(matrix, ws)
-        counts = Runner(matrix, ws, store, console).run(planned, filters, args.force)
+        plan = resolve(matrix, ws)
+        counts = Runner(plan, ws, store, console).run(filters, args.force)
     finally:
         store.close()
-    invalid = len(planned.expansion.by_state("invalid"))
+    invalid = len(plan.by_state("invalid"))
     console.print(f"[bold]done:[/] {counts['ok']} ok, {counts['skipped']} skipped, {counts['failed']} failed, "
                   f"{counts['cached']} already stored" + (f"; {invalid} combinations are not valid "
                                                           f"(`bench-matrix plan` says why)" if invalid else ""))
@@ -165,12 +169,12 @@ def _run(args: argparse.Namespace, console) -> int:
 
 
 def _plan(args: argparse.Namespace, console) -> int:
+    from bench_matrix.plan import resolve
     from bench_matrix.plan_view import show_plan
-    from bench_matrix.runner import resolve
 
     matrix, ws = _load(args)
     filters = _selected(args)
-    show_plan(console, matrix, ws, resolve(matrix, ws), filters, args.results, args.show_all)
+    show_plan(console, resolve(matrix, ws), ws, filters, args.results, args.show_all)
     return 0
 
 
@@ -191,9 +195,15 @@ def _backends(args: argparse.Namespace, console) -> int:
 
 
 def _schema(args: argparse.Namespace, console) -> int:
-    from bench_matrix.matrix.schema import schema_json
+    from bench_matrix.matrix.schema import SCHEMA, installed_schema, schema_json
 
-    sys.stdout.write(schema_json())
+    if args.builtin:
+        sys.stdout.write(schema_json(SCHEMA))
+        return 0
+    from bench_matrix.backends.registry import vocabulary
+    from bench_matrix.measure.metric_plugins import metric_names
+
+    sys.stdout.write(schema_json(installed_schema(vocabulary(), metric_names())))
     return 0
 
 

@@ -1,74 +1,94 @@
-"""Datasets: read (built-in, .npz, DeepLearningStudio folders), preprocess once, split disjointly, cache."""
+"""Datasets: read (built-in, .npz, DeepLearningStudio folders, image class folders, synthetic inputs),
+preprocess once, split disjointly, cache one array per split and input."""
 
 from __future__ import annotations
 
 import json
 import os
-from dataclasses import asdict, dataclass
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from bench_matrix.data_readers import read_folders, read_npz, refuse_non_finite, require_file
+from bench_matrix.data_readers import GROUPS, LABELS, npz_headers, read_npz, refuse_non_finite, require_file
 from bench_matrix.errors import UserError
+from bench_matrix.image_readers import first_class_image_size, read_class_folders, read_folders
+from bench_matrix.images import geometric, geometric_shape, in_layout, to_model_input
 from bench_matrix.matrix.spec import DatasetSpec, Preprocess
+from bench_matrix.tensors import SINGLE, Inputs, TensorSpec, count, random_inputs, specs_to_list
 from bench_matrix.workspace import Workspace, digest, tree_sha256
 
 SPLITS = ("train", "calibration", "test")
-CROP_SIDES = ("top", "bottom", "left", "right")
+FORMAT = 2  # of the cache: {split}__{input}.npy per input, {split}__y.npy, info.json
+BUILTIN_TASKS = {"driving": "regression", "driving_bends": "classification"}
+GEOMETRIC = ("crop", "resize", "resize_shorter", "center_crop")
+IMAGE_ONLY = (*GEOMETRIC, "mean", "std")
 
 
 @dataclass(frozen=True)
 class Raw:
-    """Images after crop/resize (N,H,W,C), raw labels (N,K), optional group per sample."""
+    """Model inputs as stored (images (N,H,W,C) after geometric preprocessing), labels as read, groups,
+    which inputs are images, and the names of the label columns (regression) or classes."""
 
-    images: np.ndarray
-    labels: np.ndarray
+    inputs: dict[str, np.ndarray]
+    labels: np.ndarray | None
     groups: np.ndarray | None
-    columns: tuple[str, ...]
+    images: tuple[str, ...] = ()
+    columns: tuple[str, ...] = ()
+    classes: tuple[str, ...] = ()
 
 
-def fingerprint(spec: DatasetSpec) -> str:
-    """Content hash of the dataset: its declaration plus the bytes of its files."""
+def fingerprint(spec: DatasetSpec, inputs: Sequence[TensorSpec] | None = None) -> str:
+    """Content hash of the dataset: its declaration (paths aside) plus the bytes of its files; for synthetic
+    data, the inputs drawn. A moved checkout keeps its cache."""
     if spec.kind == "npz":
         require_file(spec.paths[0], "an .npz archive")  # never open a pipe or a directory to hash it
     try:
-        content = tree_sha256(list(spec.paths)) if spec.paths else "builtin"
+        content = tree_sha256(list(spec.paths)) if spec.paths else spec.kind
     except OSError as exc:
         raise UserError(f"{exc.filename or source(spec)}: cannot be read ({exc.strerror or exc}); "
                         f"every dataset file must be readable") from None
-    return digest({"spec": asdict(spec), "content": content, "format": 1})
+    drawn = specs_to_list(inputs or ()) if spec.kind == "synthetic" else None
+    return digest({"spec": {**asdict(spec), "paths": None}, "content": content, "inputs": drawn,
+                   "format": FORMAT})
 
 
 def source(spec: DatasetSpec) -> str:
     """The user's dataset as named in messages: its file or folders."""
-    return ", ".join(map(str, spec.paths)) or f"the builtin dataset ({spec.samples} samples)"
+    if spec.kind == "synthetic":
+        return f"the synthetic inputs ({spec.samples} samples)"
+    return ", ".join(map(str, spec.paths)) or f"the builtin dataset {spec.builtin} ({spec.samples} samples)"
 
 
-def prepare(spec: DatasetSpec, workspace: Workspace) -> tuple[Path, dict[str, Any]]:
-    """Build (or reuse) the cached splits; return their directory and summary info."""
-    out = workspace.datasets(fingerprint(spec))
+def prepare(spec: DatasetSpec, workspace: Workspace,
+            inputs: Sequence[TensorSpec] | None = None) -> tuple[Path, dict[str, Any]]:
+    """Build (or reuse) the cached splits; return their directory and summary info. `inputs`: the model's
+    inputs, which synthetic data is drawn for."""
+    out = workspace.datasets(fingerprint(spec, inputs))
     if (out / "info.json").is_file():
         return out, json.loads((out / "info.json").read_text())
-    raw = _read(spec)
-    _check_channels(spec.preprocess, raw.images.shape[-1], source(spec))
-    y = _normalise(raw.labels, raw.columns, spec)
-    index = assign_splits(len(y), raw.groups, spec.split, spec.seed, source(spec))
+    raw = _read(spec, inputs)
+    _check_preprocess(spec.preprocess, raw, source(spec))
+    labels = _labels(raw, spec)
+    index = assign_splits(count(raw.inputs), raw.groups, spec.split, spec.seed, source(spec))
     out.mkdir(parents=True, exist_ok=True)
-    for name, idx in index.items():
-        np.save(out / f"{name}_x.npy", raw.images[idx])
-        np.save(out / f"{name}_y.npy", y[idx])
-    train_mean = y[index["train"]].mean(axis=0)
-    test_y = y[index["test"]]
+    for split, rows in index.items():
+        for name, array in raw.inputs.items():
+            np.save(out / split_file(split, name), array[rows])
+        if labels is not None:
+            np.save(out / split_file(split, LABELS), labels[rows])
     info = {
-        "fingerprint": out.name, "kind": spec.kind, "sample_shape": list(raw.images.shape[1:]),
-        "label_columns": list(raw.columns), "counts": {k: int(len(v)) for k, v in index.items()},
+        "fingerprint": out.name, "format": FORMAT, "kind": spec.kind, "task": spec.task,
+        "inputs": [{"name": name, "shape": list(a.shape[1:]), "dtype": str(a.dtype),
+                    "image": name in raw.images} for name, a in raw.inputs.items()],
+        "counts": {k: int(len(v)) for k, v in index.items()},
         "split_by": _split_method(raw.groups, spec.split.by),
         "groups": ({k: sorted({int(g) for g in raw.groups[v]}) for k, v in index.items()}
                    if raw.groups is not None else None),
-        "train_label_mean": train_mean.tolist(),
-        "mean_predictor_mse": float(np.mean((test_y - train_mean) ** 2)),
+        **_label_info(labels, index, raw, spec.task),
     }
     tmp = out / "info.json.tmp"
     tmp.write_text(json.dumps(info, indent=1))
@@ -76,43 +96,196 @@ def prepare(spec: DatasetSpec, workspace: Workspace) -> tuple[Path, dict[str, An
     return out, info
 
 
+def split_file(split: str, name: str) -> str:
+    """The cache file of one input (or the labels, `y`) of a split; odd characters of a name %-escaped."""
+    safe = "".join(c if c.isascii() and (c.isalnum() or c in "_.-") else f"%{ord(c):02x}" for c in name)
+    return f"{split}__{safe}.npy"
+
+
 def load_split(directory: Path, split: str, preprocess: Preprocess, layout: str,
-               limit: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """A split as float32 model input in `layout` and its normalised labels."""
-    x = np.load(directory / f"{split}_x.npy", mmap_mode="r")[:limit]
-    y = np.load(directory / f"{split}_y.npy")[:limit]
-    return to_model_input(np.asarray(x), preprocess, layout), y
+               limit: int | None = None) -> tuple[Inputs, np.ndarray | None]:
+    """A split's inputs as the model takes them (images scaled, normalised, in `layout`; other inputs as
+    stored) and its labels: regression float32 (N, K), classification int64 (N,), or None without labels."""
+    info = json.loads((directory / "info.json").read_text())
+    inputs: Inputs = {}
+    for item in info["inputs"]:
+        stored = np.load(directory / split_file(split, item["name"]), mmap_mode="r")[:limit]
+        image = item["image"]
+        inputs[item["name"]] = to_model_input(stored, preprocess, layout) if image else np.array(stored)
+    labels = np.load(directory / split_file(split, LABELS))[:limit] if info["task"] != "none" else None
+    return inputs, labels
 
 
-def to_model_input(images: np.ndarray, preprocess: Preprocess, layout: str) -> np.ndarray:
-    """Scale and normalise (N,H,W,C) images, then lay them out as the model expects."""
-    x = images.astype(np.float32) * np.float32(preprocess.scale)
-    if preprocess.mean is not None:
-        x = (x - np.asarray(preprocess.mean, np.float32)) / np.asarray(preprocess.std, np.float32)
-    if layout == "nchw":
-        x = x.transpose(0, 3, 1, 2)
-    return np.ascontiguousarray(x)
+def data_inputs(info: dict[str, Any], layout: str) -> tuple[TensorSpec, ...]:
+    """Each input of a prepared dataset as the model sees it: images float32 in `layout`, others as stored."""
+    return tuple(TensorSpec(i["name"], in_layout(tuple(i["shape"]), layout), "float32") if i["image"]
+                 else TensorSpec(i["name"], tuple(i["shape"]), i["dtype"]) for i in info["inputs"])
 
 
-def geometric(image: np.ndarray, preprocess: Preprocess) -> np.ndarray:
-    """Crop then resize one (H,W,C) image; the same function serves every split."""
-    if preprocess.crop is not None:
-        top, bottom, left, right = preprocess.crop
-        cropped = image[top:bottom, left:right]
-        if 0 in cropped.shape[:2]:
-            bounds = ", ".join(f"{side}: {value}" for side, value in zip(CROP_SIDES, preprocess.crop)
-                               if value is not None)
-            raise UserError(f"dataset.preprocess.crop {{{bounds}}} leaves no pixels of a {image.shape[1]}×"
-                            f"{image.shape[0]} image (width×height); crop bounds are row and column indices")
-        image = cropped
-    if preprocess.resize is not None and tuple(image.shape[:2]) != tuple(preprocess.resize):
-        from PIL import Image
+def describe(spec: DatasetSpec, layout: str = "nhwc") -> dict[str, TensorSpec] | None:
+    """The dataset's inputs as a model in `layout` would see them, read cheaply (headers only, no array
+    loaded) to find mistakes at plan time; None where that needs reading the data (folders, synthetic)."""
+    if spec.kind == "npz":
+        stored = {name: (shape[1:], dtype) for name, (shape, dtype) in npz_headers(spec.paths[0]).items()
+                  if name not in (LABELS, GROUPS)}
+    elif spec.kind == "builtin":
+        from bench_matrix.workload.driving import Camera
 
-        h, w = preprocess.resize
-        mode, dtype = ("L", np.uint8) if image.dtype == np.uint8 else ("F", np.float32)
-        image = np.stack([np.asarray(Image.fromarray(image[..., c].astype(dtype), mode=mode)
-                                     .resize((w, h), Image.BILINEAR)) for c in range(image.shape[2])], -1)
-    return image
+        stored = {SINGLE: ((Camera().rows, Camera().cols, 3), np.dtype(np.uint8))}
+    elif spec.kind == "images":
+        stored = {SINGLE: ((*first_class_image_size(spec.paths[0]), 3), np.dtype(np.uint8))}
+    else:
+        return None
+    return {name: _as_seen(name, shape, dtype, spec.preprocess, layout)
+            for name, (shape, dtype) in stored.items()}
+
+
+def _as_seen(name: str, shape: tuple[int, ...], dtype: np.dtype, preprocess: Preprocess,
+             layout: str) -> TensorSpec:
+    if not _is_image(shape, dtype):
+        return TensorSpec(name, tuple(shape), str(dtype))
+    h, w = geometric_shape(shape[:2], preprocess)
+    return TensorSpec(name, in_layout((h, w, shape[2] if len(shape) == 3 else 1), layout), "float32")
+
+
+def _is_image(sample_shape: tuple[int, ...], dtype: np.dtype) -> bool:
+    """Images are (H, W, C) per sample, or (H, W) of uint8 (grayscale)."""
+    return len(sample_shape) == 3 or (len(sample_shape) == 2 and dtype == np.uint8)
+
+
+def class_ids(labels: np.ndarray, what: str) -> np.ndarray:
+    """Classification labels as int64 (N,) class ids, after checking they are whole numbers >= 0."""
+    if labels.ndim > 2 or (labels.ndim == 2 and labels.shape[1] > 1):
+        raise UserError(f"{what} has shape {labels.shape}; classification needs one class id per sample, "
+                        f"shape (N,): store class ids (for one-hot rows, y.argmax(axis=1)), not one-hot or "
+                        f"per-class columns")
+    ids = labels.reshape(len(labels))
+    for bad, rule in ((ids != np.round(ids), "whole numbers"), (ids < 0, "class ids >= 0")):
+        if bad.any():
+            first = int(np.flatnonzero(bad)[0])
+            raise UserError(f"{what}: sample {first} is {ids[first]}; classification labels must be {rule} "
+                            f"(0 for the first class, 1 for the second...)")
+    return ids.astype(np.int64)
+
+
+def _labels(raw: Raw, spec: DatasetSpec) -> np.ndarray | None:
+    """The labels the task scores against: regression normalised float32 (N, K), class ids, or None."""
+    if spec.task == "none":
+        return None
+    if raw.labels is None:
+        raise UserError(f"{source(spec)}: has no labels, which task {spec.task} needs; use task: none")
+    if spec.task == "classification":
+        return class_ids(raw.labels, f"{source(spec)}: labels")
+    if raw.classes:
+        raise UserError(f"{source(spec)}: is labelled by class ({', '.join(raw.classes)}); use task: "
+                        f"classification (or none)")
+    with np.errstate(over="ignore"):  # a value beyond float32 becomes Inf, refused after normalising
+        return _normalise(raw.labels.reshape(len(raw.labels), -1).astype(np.float32), raw.columns, spec)
+
+
+def _label_info(labels: np.ndarray | None, index: dict[str, np.ndarray], raw: Raw,
+                task: str) -> dict[str, Any]:
+    """Regression: label columns and the mean predictor's test MSE; classification: class names and the
+    test accuracy of always answering the training split's most common class."""
+    if labels is None:
+        return {}
+    train, test = labels[index["train"]], labels[index["test"]]
+    if task == "classification":
+        classes = raw.classes or tuple(str(i) for i in range(int(labels.max()) + 1))
+        majority = np.bincount(train).argmax()
+        return {"classes": list(classes), "majority_top1": float(np.mean(test == majority))}
+    k = labels.shape[1]
+    columns = raw.columns if len(raw.columns) == k else tuple(f"y{i}" for i in range(k))
+    mean = train.mean(axis=0)
+    return {"label_columns": list(columns), "train_label_mean": mean.tolist(),
+            "mean_predictor_mse": float(np.mean((test - mean) ** 2))}
+
+
+def _check_preprocess(preprocess: Preprocess, raw: Raw, where: str) -> None:
+    """Refuse image preprocessing without images, and a per-channel mean or std that fits no image."""
+    if not raw.images:
+        given = [key for key in IMAGE_ONLY if getattr(preprocess, key) is not None]
+        if given:
+            raise UserError(f"dataset.preprocess.{given[0]} applies to images, but {where} has no image "
+                            f"input ((N, H, W, C) arrays, or (N, H, W) uint8); its inputs: "
+                            f"{', '.join(raw.inputs)}")
+    for name in raw.images:
+        channels = raw.inputs[name].shape[-1]
+        for key in ("mean", "std"):
+            values = getattr(preprocess, key)
+            if values is not None and len(values) not in (1, channels):
+                raise UserError(f"dataset.preprocess.{key} has {len(values)} values, but the images of "
+                                f"{where} have {channels} channel(s); give one value or one per channel")
+
+
+def _normalise(labels: np.ndarray, columns: tuple[str, ...], spec: DatasetSpec) -> np.ndarray:
+    """y' = (y - offset) / scale, after checking offset and scale fit the label columns."""
+    y = labels
+    for key in ("offset", "scale"):
+        values = getattr(spec.labels, key)
+        if values is not None and len(values) not in (1, y.shape[1]):
+            named = f" ({', '.join(columns)})" if len(columns) == y.shape[1] else ""
+            raise UserError(f"dataset.labels.{key} has {len(values)} values, but {source(spec)} has "
+                            f"{y.shape[1]} label column(s){named}; give one value or one per column")
+    if spec.labels.offset is not None:
+        y = y - np.asarray(spec.labels.offset, np.float32)
+    if spec.labels.scale is not None:
+        y = y / np.asarray(spec.labels.scale, np.float32)
+    refuse_non_finite(y, f"{source(spec)}: labels after dataset.labels offset and scale", "sample")
+    return y
+
+
+def _read(spec: DatasetSpec, inputs: Sequence[TensorSpec] | None) -> Raw:
+    shape = partial(geometric, preprocess=spec.preprocess)  # the same for every split
+    if spec.kind == "builtin":
+        return _builtin(spec)
+    if spec.kind == "npz":
+        arrays = read_npz(spec.paths[0], spec.task)
+        return _with_images(arrays.inputs, spec.preprocess, arrays.labels, arrays.groups, spec.labels.columns)
+    if spec.kind == "folder":
+        images, labels, groups = read_folders(spec.paths, spec.labels.columns, shape)
+        return Raw({SINGLE: images}, labels, groups, (SINGLE,), spec.labels.columns)
+    if spec.kind == "images":
+        images, labels, groups, classes = read_class_folders(spec.paths, shape)
+        return Raw({SINGLE: images}, labels, groups, (SINGLE,), classes=classes)
+    if not inputs:
+        raise UserError("dataset: synthetic inputs are drawn for the model's inputs, which are not known; "
+                        "declare the model's inputs (name, shape, dtype)")
+    return Raw(random_inputs(inputs, spec.samples, spec.seed), None, None)
+
+
+def _builtin(spec: DatasetSpec) -> Raw:
+    """The rendered driving scenes, labelled (v, w) for regression or by bend class."""
+    from bench_matrix.workload.driving import BEND_CLASSES, bend_classes, generate
+
+    task = BUILTIN_TASKS.get(spec.builtin)
+    if task is None:
+        raise UserError(f"dataset.builtin: '{spec.builtin}' is not a built-in dataset; choose one of "
+                        f"{', '.join(BUILTIN_TASKS)}")
+    if spec.task not in (task, "none"):
+        other = next(name for name, t in BUILTIN_TASKS.items() if t == spec.task)
+        raise UserError(f"dataset: the builtin dataset {spec.builtin} is labelled for {task}, not "
+                        f"{spec.task}; use builtin: {other} (or task: {task} or none)")
+    data = generate(spec.samples, seed=spec.seed, n_circuits=spec.circuits)
+    labels, columns, classes = data.labels, ("v", "w"), ()
+    if spec.builtin == "driving_bends":
+        labels, columns, classes = bend_classes(data.labels[:, 1]), (), BEND_CLASSES
+    raw = _with_images({SINGLE: data.images}, spec.preprocess, labels, data.groups, columns)
+    return replace(raw, classes=classes)
+
+
+def _with_images(arrays: dict[str, np.ndarray], preprocess: Preprocess, labels: np.ndarray | None,
+                 groups: np.ndarray | None, columns: tuple[str, ...]) -> Raw:
+    """Arrays of images (grayscale given a channel axis) cropped and resized; other arrays as given."""
+    inputs = {}
+    for name, array in arrays.items():
+        if _is_image(array.shape[1:], array.dtype):
+            array = array if array.ndim == 4 else array[..., None]
+            if any(getattr(preprocess, key) is not None for key in GEOMETRIC):
+                array = np.stack([geometric(image, preprocess) for image in array])
+        inputs[name] = array
+    images = tuple(name for name, array in inputs.items() if array.ndim == 4)
+    return Raw(inputs, labels, groups, images, columns)
 
 
 def assign_splits(n: int, groups: np.ndarray | None, split: Any, seed: int,
@@ -159,48 +332,3 @@ def _enough_samples(fractions: np.ndarray, n: int) -> int:
     bounds = np.round(np.outer(ns, np.cumsum(fractions))).astype(int)
     enough = (np.diff(bounds, axis=1, prepend=0) > 0).all(axis=1)
     return int(ns[np.argmax(enough)]) if enough.any() else surely
-
-
-def _check_channels(preprocess: Preprocess, channels: int, where: str) -> None:
-    """Refuse a per-channel mean or std whose length is neither 1 nor the images' channel count."""
-    for key in ("mean", "std"):
-        values = getattr(preprocess, key)
-        if values is not None and len(values) not in (1, channels):
-            raise UserError(f"dataset.preprocess.{key} has {len(values)} values, but the images of {where} "
-                            f"have {channels} channel(s); give one value or one per channel")
-
-
-def _normalise(labels: np.ndarray, columns: tuple[str, ...], spec: DatasetSpec) -> np.ndarray:
-    """y' = (y - offset) / scale, after checking offset and scale fit the label columns."""
-    y = labels.astype(np.float32)
-    for key in ("offset", "scale"):
-        values = getattr(spec.labels, key)
-        if values is not None and len(values) not in (1, y.shape[1]):
-            raise UserError(f"dataset.labels.{key} has {len(values)} values, but {source(spec)} has "
-                            f"{y.shape[1]} label column(s) ({', '.join(columns)}); give one value or one "
-                            f"per column")
-    if spec.labels.offset is not None:
-        y = y - np.asarray(spec.labels.offset, np.float32)
-    if spec.labels.scale is not None:
-        y = y / np.asarray(spec.labels.scale, np.float32)
-    refuse_non_finite(y, f"{source(spec)}: labels after dataset.labels offset and scale", "sample")
-    return y
-
-
-def _read(spec: DatasetSpec) -> Raw:
-    if spec.kind == "builtin":
-        from bench_matrix.workload.driving import generate
-
-        data = generate(spec.samples, seed=spec.seed, n_circuits=spec.circuits)
-        images, labels, groups, columns = data.images, data.labels, data.groups, ("v", "w")
-    elif spec.kind == "npz":
-        images, labels, groups, columns = read_npz(spec.paths[0], spec.labels.columns)
-    else:
-        images, labels, groups = read_folders(spec.paths, spec.labels.columns,
-                                              lambda image: geometric(image, spec.preprocess))
-        return Raw(images, labels, groups, spec.labels.columns)  # folders are cropped/resized while reading
-    if images.ndim == 3:
-        images = images[..., None]
-    if spec.preprocess.crop is not None or spec.preprocess.resize is not None:
-        images = np.stack([geometric(img, spec.preprocess) for img in images])
-    return Raw(images, labels, groups, columns)

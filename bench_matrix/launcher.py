@@ -35,9 +35,10 @@ class Outcome:
         return self.error is None
 
 
-def run_job(job: dict[str, Any], workdir: Path, log: Path, timeout_s: float, threads: int | None = None,
+def run_job(job: Any, workdir: Path, log: Path, timeout_s: float, threads: int | None = None,
             on_phase: Callable[[str], None] = lambda _: None, tick: Callable[[], None] = lambda: None) -> Outcome:
-    """Start `python -m bench_matrix.worker` on `job`; kill its process group at `timeout_s`."""
+    """Start `python -m bench_matrix.worker` on `job` (a typed job: its `mode` names the function that runs
+    it); kill its process group at `timeout_s`."""
     if not timeout_s > 0:  # also NaN
         raise UserError(f"a time limit must be a positive number of seconds, got {timeout_s!r} "
                         f"(settings.timeout_s)")
@@ -45,15 +46,16 @@ def run_job(job: dict[str, Any], workdir: Path, log: Path, timeout_s: float, thr
     log.parent.mkdir(parents=True, exist_ok=True)
     stem = f"job-{os.getpid()}-{time.monotonic_ns()}"
     job_path, result_path = workdir / f"{stem}.pickle", workdir / f"{stem}.json"
-    job_path.write_bytes(pickle.dumps({**job, "result_path": str(result_path)}))
+    job_path.write_bytes(pickle.dumps(job))
     read_fd, write_fd = os.pipe()
     env = dict(os.environ, BENCH_MATRIX_PHASE_FD=str(write_fd), PYTHONUNBUFFERED="1")
     if threads is not None:
         env.update({name: str(threads) for name in THREAD_VARIABLES})
     with open(log, "ab") as log_file:
-        log_file.write(f"\n=== {job['mode']} {time.strftime('%Y-%m-%d %H:%M:%S')} ===\n".encode())
+        log_file.write(f"\n=== {job.mode} {time.strftime('%Y-%m-%d %H:%M:%S')} ===\n".encode())
         log_file.flush()
-        proc = subprocess.Popen([sys.executable, "-m", "bench_matrix.worker", str(job_path)], stdin=subprocess.DEVNULL,
+        proc = subprocess.Popen([sys.executable, "-m", "bench_matrix.worker", str(job_path), str(result_path)],
+                                stdin=subprocess.DEVNULL,
                                 stdout=log_file, stderr=subprocess.STDOUT, pass_fds=(write_fd,), env=env,
                                 start_new_session=True)
     os.close(write_fd)

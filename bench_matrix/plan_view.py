@@ -11,11 +11,12 @@ from rich.padding import Padding
 from rich.table import Table
 
 from bench_matrix.backends.registry import available
-from bench_matrix.cell import PlannedCell
+from bench_matrix.cell import CellPlan
+from bench_matrix.jobs import ProbeJob
 from bench_matrix.launcher import run_job
 from bench_matrix.matrix.schema import TARGETS
-from bench_matrix.matrix.spec import Matrix
-from bench_matrix.runner import PROBE_TIMEOUT_S, Filters, Planned, Runner
+from bench_matrix.plan import PROBE_TIMEOUT_S, Plan
+from bench_matrix.runner import Filters, Runner
 from bench_matrix.store import ResultStore
 from bench_matrix.workspace import Workspace
 
@@ -23,20 +24,20 @@ STATE_STYLE = {"run": "[green]will run[/]", "stored": "[cyan]stored[/]", "skip":
                "invalid": "[dim]not valid[/]"}
 
 
-def show_plan(console: Console, matrix: Matrix, ws: Workspace, planned: Planned, filters: Filters,
-              results: Path | None, show_all: bool = False) -> None:
+def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, results: Path | None,
+              show_all: bool = False) -> None:
     """Cells that will run, are stored, or are skipped (why); then the combinations that are not valid (why)."""
-    filters.check([p.cell for p in planned.expansion.cells])
+    filters.check([p.cell for p in plan.cells])
     results = results or ws.results
     store = ResultStore(results, readonly=True) if results.is_file() else None
-    runner = Runner(matrix, ws, store, console) if store else None
-    cells = [p for p in planned.expansion.cells if filters.keep(p.cell)]
-    table = Table(title=f"cells of {matrix.path}")
+    runner = Runner(plan, ws, store, console) if store else None
+    cells = [p for p in plan.cells if filters.keep(p.cell)]
+    table = Table(title=f"cells of {plan.matrix.path}")
     for column in ("model", "backend", "strategy", "precision", "target", "state", "reason"):
         table.add_column(column, overflow="fold")
     counts = {"run": 0, "stored": 0, "skip": 0, "invalid": 0}
     for p in sorted((p for p in cells if p.state != "invalid"), key=lambda p: (p.state, p.cell)):
-        state = "stored" if p.state == "run" and runner and runner.is_done(p.cell) else p.state
+        state = "stored" if p.state == "run" and runner and runner.is_done(p) else p.state
         counts[state] += 1
         c = p.cell
         table.add_row(c.model, c.backend, c.strategy, c.precision, c.target, STATE_STYLE[state], escape(p.reason or ""))
@@ -46,15 +47,15 @@ def show_plan(console: Console, matrix: Matrix, ws: Workspace, planned: Planned,
     if invalid:
         console.print(_invalid_table(invalid, show_all))
     console.print(f"{counts['run']} will run, {counts['stored']} already stored, {counts['skip']} will be skipped, "
-                  f"{counts['invalid']} not valid, {planned.expansion.excluded} removed by exclude")
+                  f"{counts['invalid']} not valid, {plan.excluded} removed by exclude")
     if store:
         store.close()
 
 
-def _invalid_table(invalid: list[PlannedCell], show_all: bool) -> Table:
+def _invalid_table(invalid: list[CellPlan], show_all: bool) -> Table:
     """Not-valid combinations grouped by backend and reason; unless `show_all`, a backend's unimplemented
     strategy/precision/target combinations are one row (`bench-matrix backends` lists what each supports)."""
-    groups: dict[tuple[str, ...], list[PlannedCell]] = {}
+    groups: dict[tuple[str, ...], list[CellPlan]] = {}
     for p in invalid:
         c, why = p.cell, p.reason or ""
         if show_all:
@@ -77,8 +78,7 @@ def _invalid_table(invalid: list[PlannedCell], show_all: bool) -> Table:
 def show_backends(console: Console, ws: Workspace) -> None:
     """Every installed backend: its package, what it supports, and per target whether this machine runs it."""
     entries = available()
-    outcome = run_job({"mode": "probe", "backends": list(entries), "keys": "declared"}, ws.root / "jobs",
-                      ws.logs / "probe.log", PROBE_TIMEOUT_S)
+    outcome = run_job(ProbeJob(ws, tuple(entries)), ws.jobs, ws.log("probe"), PROBE_TIMEOUT_S)
     if not outcome.ok:
         console.print(f"[red]probing the backends failed:[/] {escape(outcome.error or '')}")
         return
@@ -98,7 +98,8 @@ def show_backends(console: Console, ws: Workspace) -> None:
         for s in info["supports"]:
             grid.add_row("supports", f"{'/'.join(s['frameworks'])}: {', '.join(s['strategies'])} at "
                                      f"{', '.join(s['precisions'])} on {', '.join(s['targets'])}")
-        for target in TARGETS:
+        declared = {t for s in info["supports"] for t in s["targets"]}
+        for target in [*TARGETS, *sorted(declared - set(TARGETS))]:
             grid.add_row(target, _target_status(name, target, verdicts))
         grid.add_row("versions", escape(", ".join(f"{k} {v}" for k, v in info["versions"].items()) or "—"))
         console.print(Padding(grid, (0, 0, 1, 2)))

@@ -60,6 +60,16 @@ class RunProgress:
         self._progress.refresh()
 
 
+def _accuracy(metrics: dict) -> str:
+    """The task's headline accuracy figure: MSE, top-1, or the cosine similarity to the baseline."""
+    if "mse" in metrics:
+        return f"MSE {metrics['mse']:.4g}"
+    if "top1" in metrics:
+        return f"top-1 {metrics['top1']:.1%}"
+    cosine = metrics.get("cosine_similarity")
+    return "" if cosine is None else f"cosine {cosine:.6f}"
+
+
 def describe(record: CellRecord) -> str:
     """One line: status mark, cell, and its headline numbers or reason."""
     cell: Cell = record.cell
@@ -69,7 +79,7 @@ def describe(record: CellRecord) -> str:
         passes = m.get("latency_passes_p50", [])
         per_pass = f"  (p50 per pass: {', '.join(f'{p:.3g}' for p in passes)} ms)" if len(passes) > 1 else ""
         return (f"[green]✓[/] {name}  p50 {m['latency_ms']['p50']:.3g} ms  p99 {m['latency_ms']['p99']:.3g} ms  "
-                f"{m['throughput_sps']:.0f} samples/s  MSE {m['mse']:.4g}  {m['size_bytes'] / 2**20:.2f} MiB{per_pass}")
+                f"{m['throughput_sps']:.0f} samples/s  {_accuracy(m)}  {m['size_bytes'] / 2**20:.2f} MiB{per_pass}")
     lines = (record.reason or "").strip().splitlines()
     mark = "[yellow]–[/] skipped" if record.status == "skipped" else "[red]✗[/] failed"
     return f"{mark} {escape(name)}: {escape(lines[0] if lines else '')}"

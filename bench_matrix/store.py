@@ -45,8 +45,13 @@ class CellRecord:
     fingerprint: str = ""
     matrix: str = ""
 
+    @property
+    def host(self) -> str | None:
+        """The machine the record was measured (or skipped) on."""
+        return self.env.get("host")
+
     def to_json(self) -> dict[str, Any]:
-        return {"cell": self.cell.as_dict(), "status": self.status, "reason": self.reason,
+        return {"cell": self.cell.as_dict(), "host": self.host, "status": self.status, "reason": self.reason,
                 "metrics": self.metrics, "artifact_path": self.artifact_path, "env": self.env,
                 "started_at": self.started_at, "finished_at": self.finished_at,
                 "fingerprint": self.fingerprint, "matrix": self.matrix}

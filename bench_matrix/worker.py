@@ -1,4 +1,5 @@
-"""Entry point of every child process: `python -m bench_matrix.worker JOB.pickle` runs one job."""
+"""Entry point of every child process: `python -m bench_matrix.worker JOB.pickle RESULT.json` runs one typed job
+and writes its outcome."""
 
 from __future__ import annotations
 
@@ -38,19 +39,18 @@ def die_with_parent() -> None:
 
 
 def _function(mode: str):
-    """A job function: a name in bench_matrix.jobs, or 'module:function'."""
-    module, _, name = mode.rpartition(":")
-    return getattr(importlib.import_module(module or "bench_matrix.jobs"), name)
+    """The function that runs a job: 'module:function'."""
+    module, _, name = mode.partition(":")
+    return getattr(importlib.import_module(module), name)
 
 
 def main(argv: list[str]) -> int:
     die_with_parent()
-    job_path = Path(argv[0])
-    job = pickle.loads(job_path.read_bytes())  # written by our own parent process, never user input
-    result_path = Path(job["result_path"])
+    job = pickle.loads(Path(argv[0]).read_bytes())  # written by our own parent process, never user input
+    result_path = Path(argv[1])
     warnings.filterwarnings("ignore", category=DeprecationWarning)
     try:
-        result = {"ok": True, "value": _function(job["mode"])(job)}
+        result = {"ok": True, "value": _function(job.mode)(job)}
         code = 0
     except Exception as exc:  # everything a job raises is reported to the parent as the cell's reason
         traceback.print_exc()

@@ -20,13 +20,18 @@ FILE_TYPES = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a named pipe"),
 
 @dataclass(frozen=True)
 class Workspace:
-    """Directory layout under one root (default ./.bench-matrix)."""
+    """Directory layout under one root (default ./.bench-matrix): every path bench-matrix writes is named here."""
 
     root: Path
 
     @property
     def results(self) -> Path:
         return self.root / "results.sqlite"
+
+    @property
+    def jobs(self) -> Path:
+        """Job and result files exchanged with worker processes (removed as each job ends)."""
+        return self.root / "jobs"
 
     def datasets(self, fingerprint: str) -> Path:
         return self.root / "cache" / "datasets" / fingerprint
@@ -40,9 +45,24 @@ class Workspace:
     def intermediates(self, backend: str, fingerprint: str) -> Path:
         return self.root / "cache" / "intermediates" / backend / fingerprint
 
+    def finetuned(self, fingerprint: str) -> Path:
+        return self.root / "cache" / "finetuned" / fingerprint
+
+    def params(self, sha256: str) -> Path:
+        """The parameter count of a source model, by its content hash."""
+        return self.root / "cache" / "params" / f"{sha256}.json"
+
     @property
     def logs(self) -> Path:
         return self.root / "logs"
+
+    def log(self, name: str) -> Path:
+        """The log of a preparation step (probe, dataset, model-NAME)."""
+        return self.logs / f"{name}.log"
+
+    def cell_log(self, key: str) -> Path:
+        """The log of one cell's processes (fine-tune, convert, measure), by its key."""
+        return self.logs / f"{key.replace('/', '__')}.log"
 
 
 def digest(obj: Any) -> str:

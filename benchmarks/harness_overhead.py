@@ -68,7 +68,7 @@ def bare_p50(artifact: Path, inputs: list[np.ndarray], threads: int = 1) -> floa
 
 def test_inputs(workdir: Path, count: int = 16) -> list[np.ndarray]:
     """The same first test samples the cell times, preprocessed the same way (pixels / 255, NCHW)."""
-    split = next((workdir / "ws" / "cache" / "datasets").glob("*/test_x.npy"))
+    split = next((workdir / "ws" / "cache" / "datasets").glob("*/test__x.npy"))
     images = np.load(split)[:count].astype(np.float32) / 255.0
     return [np.ascontiguousarray(img.transpose(2, 0, 1)[None]) for img in images]
 

@@ -51,12 +51,14 @@ def source(tmp_path_factory: pytest.TempPathFactory) -> "SourceModel":
     import torch
 
     from bench_matrix.sources import SourceModel
+    from bench_matrix.tensors import TensorSpec
 
     path = tmp_path_factory.mktemp("source") / "tiny.pt"
     torch.save(tiny_models.fitted().state_dict(), path)
     return SourceModel(name="tiny", framework="pytorch", format="state_dict", path=path,
-                       sha256=hashlib.sha256(path.read_bytes()).hexdigest(), input_shape=tiny_models.INPUT_SHAPE,
-                       factory="tiny_models:tiny", python_path=(str(TESTS),))
+                       sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
+                       inputs=(TensorSpec("input", tiny_models.INPUT_SHAPE),), factory="tiny_models:tiny",
+                       python_path=(str(TESTS),))
 
 
 @pytest.fixture(scope="module")

@@ -119,6 +119,12 @@ CONTEXT = {  # what a key needs around it to be valid
     "dataset.folder": ((("dataset",), {"folder": "rec"}),),
     "strategies.s.calibration_samples": strategy("ptq_static"), "strategies.s.clusters": strategy("cluster"),
     "strategies.s": strategy("prune"),
+    "dataset.synthetic": ((("dataset",), {"synthetic": {"samples": 8}}),),
+    "dataset.images": ((("dataset",), {"images": "imgs"}),),
+    "dataset.preprocess.resize_shorter": ((("dataset", "preprocess"), {"resize_shorter": 16}),),
+    "dataset.preprocess.center_crop": ((("dataset", "preprocess"), {"center_crop": [8, 8]}),),
+    "models.0.inputs": ((("models", 0, "inputs"), [{"name": "X", "shape": [3, 16, 16], "range": [0, 1]}]),),
+    "models.0.dataset": ((("models", 0, "dataset"), {"npz": "data.npz"}),),
 }
 CONTEXT["dataset.circuits"] = CONTEXT["dataset.samples"]
 CONTEXT["dataset.preprocess.std"] = CONTEXT["dataset.preprocess.mean"]
@@ -134,7 +140,8 @@ INTEGERS = ["settings.warmup_iterations", "settings.min_iterations", "settings.b
             "dataset.samples", "dataset.circuits", "dataset.preprocess.resize.0",
             "dataset.preprocess.crop.top", "models.0.training.epochs", "models.0.training.batch_size",
             "strategies.s.calibration_samples", "strategies.s.batch_size", "strategies.s.min_weights",
-            "strategies.s.clusters"]
+            "strategies.s.clusters", "dataset.synthetic.samples", "dataset.preprocess.resize_shorter",
+            "dataset.preprocess.center_crop.1", "models.0.inputs.0.shape.0"]
 # where a huge count means "all" or "none"; elsewhere it allocates or loops without end
 HUGE_IS_MEANINGFUL = ["settings.eval_samples", "dataset.preprocess.crop.top", "strategies.s.min_weights",
                       "strategies.s.clusters"]
@@ -143,7 +150,7 @@ DURATIONS = ["settings.warmup_s", "settings.min_time_s", "settings.max_time_s", 
 REALS = ["strategies.s.lr", "strategies.s.fraction", "strategies.s.final_sparsity",
          "strategies.s.initial_sparsity", "models.0.training.lr", "dataset.preprocess.scale",
          "dataset.preprocess.mean.0", "dataset.preprocess.std.0", "dataset.labels.offset.0",
-         "dataset.labels.scale.0", "dataset.split.train"]
+         "dataset.labels.scale.0", "dataset.split.train", "models.0.inputs.0.range.1"]
 NOT_FINITE = {"nan": ".nan", "inf": ".inf", "neg_inf": "-.inf"}
 BAD = {  # key -> its bad values
     **{k: {"whole_float": "2.0", "float_1e30": "1.0e+30", **NOT_FINITE, "string": "'8'", "bool": "true",
@@ -162,7 +169,7 @@ def value_cases() -> list[Case]:
 
 
 PATHS = {"models.0.file": ".onnx", "models.0.weights": ".pt", "models.0.python_path.0": "",
-         "dataset.npz": ".npz", "dataset.folder": ""}
+         "dataset.npz": ".npz", "dataset.folder": "", "dataset.images": "", "models.0.dataset.npz": ".npz"}
 BAD_PATHS = {"nul_byte": '"bad\\0name{}"', "unknown_user": "~fuzz-no-such-user/x{}",
              "name_too_long": "x" * 300 + "{}"}
 
@@ -227,6 +234,23 @@ TYPES = {  # name -> (key path, raw YAML value, what the message names)
     "typo_settings": ("settings.thread", "1", "settings.thread"),
     "typo_model_key": ("models.0.framwork", "onnx", "models[0]"),
     "typo_dataset_key": ("dataset.nzp", "x", "dataset.nzp"),
+    "task_typo": ("dataset.task", "classify", "dataset.task"),
+    "model_task_typo": ("models.0.task", "regresion", "models[0].task"),
+    "model_dataset_two_kinds": ("models.0.dataset", "{npz: data.npz, synthetic: {samples: 8}}",
+                                "models[0].dataset"),
+    "images_missing": ("dataset", "{images: no/such/dir}", "dataset.images"),
+    "synthetic_with_labels": ("dataset", "{synthetic: {samples: 8}, labels: {columns: [y]}}",
+                              "dataset.labels"),
+    "input_dtype_typo": ("models.0.inputs", "[{name: X, shape: [3, 16, 16], dtype: flaot32}]",
+                         "models[0].inputs[0].dtype"),
+    "input_names_twice": ("models.0.inputs", "[{name: X, shape: [3]}, {name: X, shape: [3]}]",
+                          "models[0].inputs[1].name"),
+    "input_shape_string": ("models.0.inputs", "[{name: X, shape: '3x16x16'}]", "models[0].inputs[0].shape"),
+    "input_range_reversed": ("models.0.inputs", "[{name: X, shape: [3], range: [1, 0]}]",
+                             "models[0].inputs[0].range"),
+    "backend_options_typo": ("backend_options", "{onnxruntme: {}}", "backend_options.onnxruntme"),
+    "backend_options_list": ("backend_options", "[onnxruntime]", "backend_options"),
+    "metrics_unknown": ("metrics", "[no_such_metric]", "metrics[0]"),
 }
 STRATEGIES = {  # name -> (the strategies section, what the message names)
     "kind_typo": ("{s: {kindd: ptq_static}}", ("strategies.s",), ("did you mean 'kind'",)),

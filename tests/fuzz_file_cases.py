@@ -115,7 +115,6 @@ NPZ = {  # name -> (arrays or bytes, culprit besides the file name, marker)
     "groups_strings": (arrays(groups=np.array([f"run{i % 4}" for i in range(48)])), ("groups",), None),
     "groups_nan": (arrays(groups=with_value(np.arange(48) % 4, 9, np.nan)), ("groups",), None),
     "groups_2d": (arrays(groups=np.zeros((48, 2), np.int64)), ("groups",), None),
-    "images_2d": (arrays(x=GOOD["x"].reshape(48, -1)), (r"re:\bx\b",), None),
     "zero_samples": (arrays(x=GOOD["x"][:0], y=GOOD["y"][:0]), (), None),
     "zero_width_images": (arrays(x=GOOD["x"][:, :, :0]), (r"re:\bx\b",), None),
     "complex_images": (arrays(x=GOOD["x"].astype(np.complex64)), (r"re:\bx\b",), None),
@@ -150,8 +149,29 @@ FOLDER = {  # name -> (folder builder, culprit)
 }
 
 
+def class_folders(images: dict[str, Any] | None = None, flat: bool = False) -> Callable[[Path], str]:
+    """Folder 'imgs': classes cat, dog of six PNGs each, some replaced by `images`; `flat`: no classes."""
+    def build(project: Path) -> str:
+        rng = np.random.default_rng(SEED)
+        files = {f"{label}/{label[0]}{i}.png": png(rng.integers(0, 256, (16, 16, 3), dtype=np.uint8))
+                 for label in ("cat", "dog") for i in range(6)}
+        for name, data in {**files, **(images or {})}.items():
+            path = project / "imgs" / (name.replace("/", "_") if flat else name)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(data(project) if callable(data) else data)
+        return render(((("dataset",), {"images": "imgs", "split": SPLIT}),))
+    return build
+
+
+IMAGES = {  # name -> (image folder builder, culprit)
+    "no_class_subfolders": (class_folders(flat=True), ("imgs",)),
+    "png_corrupt": (class_folders({"cat/c3.png": np.random.default_rng(SEED).bytes(500)}), ("c3.png",)),
+    "png_decompression_bomb": (class_folders({"cat/c2.png": lambda _p: bomb_png()}), ("c2.png",)),
+}
+
+
 def data_cases() -> list[Case]:
-    """Broken .npz files and DeepLearningStudio folders; their culprit includes the file's name."""
+    """Broken .npz files, DeepLearningStudio folders, image folders; each culprit names the file."""
     cases = []
     for name, (content, culprit, marker) in NPZ.items():
         def build(project: Path, name: str = name, content: Any = content) -> str:
@@ -162,7 +182,7 @@ def data_cases() -> list[Case]:
         culprit = ((f"{name}.npz",),) + ((culprit,) if culprit else ())
         cases.append(Case(f"npz:{name}", build, culprit, marker))
     cases += [Case(f"folder:{name}", build, (culprit,)) for name, (build, culprit) in FOLDER.items()]
-    return cases
+    return cases + [Case(f"images:{name}", build, (culprit,)) for name, (build, culprit) in IMAGES.items()]
 
 
 # ---------------------------------------------------------------------------------------------- model files

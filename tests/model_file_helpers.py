@@ -18,6 +18,7 @@ from fuzz_cases import Payload
 from bench_matrix.errors import UserError
 from bench_matrix.sources import SourceModel
 from bench_matrix.sources.onnx_file import load_onnx
+from bench_matrix.tensors import TensorSpec
 
 
 def pickle_payload(marker: Path) -> bytes:
@@ -28,7 +29,7 @@ def pickle_payload(marker: Path) -> bytes:
 
 def make_source(path: Path, fmt: str, framework: str = "pytorch", **extra: Any) -> SourceModel:
     return SourceModel(name="m", framework=framework, format=fmt, path=path, sha256="not checked here",
-                       input_shape=tiny_models.INPUT_SHAPE, **extra)
+                       inputs=(TensorSpec("input", tiny_models.INPUT_SHAPE),), **extra)
 
 
 def factory_source(path: Path, factory: str = "tiny_models:tiny", where: Path = TESTS) -> SourceModel:

@@ -189,7 +189,7 @@ def test_user_errors_exit_2_without_traceback(tiny_project):
         "npz: data.npz", "npz: bad.npz"))
     out = cli(tiny_project, "run", "m.yaml")
     assert out.returncode == 2 and "Traceback" not in out.stderr
-    assert "missing array(s) x, y" in out.stderr and "it has: images" in out.stderr
+    assert "missing array 'y'" in out.stderr and "it has: images" in out.stderr
 
     missing = cli(tiny_project, "run", "nope.yaml")
     assert missing.returncode == 2 and "nope.yaml: file not found" in missing.stderr

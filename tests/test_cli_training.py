@@ -1,4 +1,5 @@
-"""Training-aware strategies end to end through the CLI: fine-tuned once, shared by backends, measured honestly."""
+"""Training-aware strategies end to end through the CLI: fine-tuned once, shared by backends, measured
+honestly; a classifier fine-tuned on its class labels."""
 
 from __future__ import annotations
 
@@ -7,23 +8,26 @@ from pathlib import Path
 
 import pytest
 
-from conftest import cli, matrix_text
+import task_models
+from conftest import FAST_SETTINGS, TESTS, cli, matrix_text
 from test_cli_tensorflow import _keras_project, _records
 
 pytestmark = pytest.mark.slow
 
 TORCH_STRATEGIES = (
     "strategies:\n"
-    "  prune_local: {kind: prune, scope: local, conv_sparsity: 0.3, linear_sparsity: 0.5, epochs: 1, fraction: 0.5,"
+    "  prune_local: {kind: prune, scope: local, conv_sparsity: 0.3, linear_sparsity: 0.5, epochs: 1,"
+    " fraction: 0.5, min_weights: 0}\n"
+    "  prune_global: {kind: prune, scope: global, final_sparsity: 0.4, epochs: 1, fraction: 0.5,"
     " min_weights: 0}\n"
-    "  prune_global: {kind: prune, scope: global, final_sparsity: 0.4, epochs: 1, fraction: 0.5, min_weights: 0}\n"
     "  qat: {kind: qat, epochs: 1, fraction: 0.5}\n"
     "  prune_dynamic: {steps: [prune_local, ptq_dynamic]}\n")
 
 
 def test_pytorch_pruning_and_qat(tiny_project: Path) -> None:
-    text = matrix_text(["torchscript", "onnxruntime"], ["prune_local", "prune_global", "qat", "prune_dynamic"],
-                       ["fp32", "int8"], ["cpu"], TORCH_STRATEGIES)
+    text = matrix_text(["torchscript", "onnxruntime"],
+                       ["prune_local", "prune_global", "qat", "prune_dynamic"], ["fp32", "int8"], ["cpu"],
+                       TORCH_STRATEGIES)
     (tiny_project / "m.yaml").write_text(text)
     run = cli(tiny_project, "run", "m.yaml", timeout=900)
     assert run.returncode == 0 and "0 failed" in run.stdout, run.stdout + run.stderr
@@ -40,9 +44,11 @@ def test_pytorch_pruning_and_qat(tiny_project: Path) -> None:
     assert local["finetune"] == found["onnxruntime/prune_local/fp32/cpu"]["metrics"]["finetune"]
     assert local["convert_s"] >= local["finetune_s"] > 0
     # the combination starts from the pristine model too: pruned like prune_local, then quantised
-    assert found["torchscript/prune_dynamic/int8/cpu"]["metrics"]["sparsity"] == pytest.approx(local["sparsity"])
+    combined = found["torchscript/prune_dynamic/int8/cpu"]["metrics"]
+    assert combined["sparsity"] == pytest.approx(local["sparsity"])
     plan = cli(tiny_project, "plan", "m.yaml")
-    assert "onnxruntime does not implement qat" in plan.stdout or "combinations it does not implement" in plan.stdout
+    assert ("onnxruntime does not implement qat" in plan.stdout
+            or "combinations it does not implement" in plan.stdout)
 
 
 TF_STRATEGIES = (
@@ -78,3 +84,32 @@ def test_tensorflow_pruning_clustering_and_qat_in_tflite(tmp_path: Path) -> None
     qat = found["tflite/qat/int8/cpu"]["metrics"]
     assert qat["session"]["interpreter"].startswith("ai_edge_litert")
     assert json.dumps(qat["finetune"])  # facts are recorded
+
+
+def test_a_classifier_is_fine_tuned_on_its_class_labels_and_none_is_refused(tmp_path: Path) -> None:
+    task_models.save(task_models.classifier, tmp_path, "cls.pt")
+    task_models.class_images(tmp_path)
+    task_models.save(task_models.two_input, tmp_path, "two.pt")
+    task_models.features(tmp_path)
+    factory = "framework: pytorch, python_path: ['" + str(TESTS) + "']"
+    (tmp_path / "m.yaml").write_text(
+        "models:\n"
+        f"  - {{name: cls, {factory}, factory: 'task_models:classifier', weights: cls.pt}}\n"
+        f"  - {{name: two, {factory}, factory: 'task_models:two_input', weights: two.pt, task: none,"
+        " dataset: {npz: features.npz}, inputs: [{name: features, shape: [6]},"
+        " {name: ids, shape: [5], dtype: int64, range: [0, 11]}]}\n"
+        "dataset: {npz: images.npz, task: classification,"
+        " split: {train: 0.5, calibration: 0.25, test: 0.25}}\n"
+        "strategies:\n  prune: {kind: prune, epochs: 3, lr: 0.01, fraction: 1.0, min_weights: 0}\n"
+        "axes: {backend: [pytorch], strategy: [none, prune], precision: [fp32], target: [cpu]}\n"
+        + FAST_SETTINGS)
+    run = cli(tmp_path, "run", "m.yaml", timeout=900)
+    assert run.returncode == 0 and "0 failed" in run.stdout, run.stdout + run.stderr
+    plan = cli(tmp_path, "plan", "m.yaml")
+    assert "fine-tuning needs labels; the task is none" in plan.stdout, plan.stdout
+    report = cli(tmp_path, "report", "--format", "json")
+    found = {(r["cell"]["model"], r["cell"]["strategy"]): r for r in json.loads(report.stdout)}
+    assert found[("cls", "prune")]["status"] == "ok" and ("two", "prune") not in found, found.keys()
+    metrics = found[("cls", "prune")]["metrics"]
+    assert metrics["finetune"]["loss"] == "cross_entropy" and metrics["sparsity"] >= 0.3
+    assert metrics["top1"] >= 0.5 and "mse" not in metrics  # brightest channel: well above chance (1/3) in 3 epochs

@@ -16,13 +16,16 @@ import pytest
 from PIL import Image
 
 from bench_matrix import data
-from bench_matrix.data_readers import read_folders, read_npz, read_table
+from bench_matrix.images import geometric
+from bench_matrix.data_readers import read_npz
+from bench_matrix.image_readers import read_folders, read_table
 from bench_matrix.errors import UserError
 from bench_matrix.matrix.spec import DatasetSpec, LabelSpec, Preprocess, SplitSpec
 from bench_matrix.workspace import Workspace
 from conftest import cli, matrix_text
 
 COLUMNS = ("v", "w")
+TASK = "regression"
 
 
 class WritesMarker:
@@ -60,18 +63,18 @@ def good_arrays(n: int = 10) -> dict[str, np.ndarray]:
 def test_npz_file_that_is_not_an_archive(tmp_path):
     empty = tmp_path / "empty.npz"
     empty.write_bytes(b"")
-    refused(lambda: read_npz(empty, COLUMNS), str(empty), "is empty (0 bytes)", "numpy.savez")
+    refused(lambda: read_npz(empty, TASK), str(empty), "is empty (0 bytes)", "numpy.savez")
     text = tmp_path / "text.npz"
     text.write_text("x,y\n1,2\n")
-    refused(lambda: read_npz(text, COLUMNS), str(text), "not an .npz archive (not a zip file)")
+    refused(lambda: read_npz(text, TASK), str(text), "not an .npz archive (not a zip file)")
     single = tmp_path / "single.npz"
     with open(single, "wb") as f:
         np.save(f, np.zeros(3))
-    refused(lambda: read_npz(single, COLUMNS), str(single), "single .npy array, not an .npz archive")
+    refused(lambda: read_npz(single, TASK), str(single), "single .npy array, not an .npz archive")
     whole = npz(tmp_path / "whole.npz", **good_arrays())
     truncated = tmp_path / "truncated.npz"
     truncated.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
-    refused(lambda: read_npz(truncated, COLUMNS), str(truncated), "damaged or truncated zip archive")
+    refused(lambda: read_npz(truncated, TASK), str(truncated), "damaged or truncated zip archive")
 
 
 def test_npz_with_a_damaged_member(tmp_path):
@@ -81,61 +84,68 @@ def test_npz_with_a_damaged_member(tmp_path):
     raw = bytearray(path.read_bytes())
     raw[200:260] = bytes(60)  # inside x's compressed data
     path.write_bytes(bytes(raw))
-    refused(lambda: read_npz(path, COLUMNS), str(path), "array 'x'", "damaged")
+    refused(lambda: read_npz(path, TASK), str(path), "array 'x'", "damaged")
 
 
 def test_npz_pickles_are_refused_and_never_run(tmp_path):
     marker = tmp_path / "marker"
     pickled = tmp_path / "pickled.npz"
     pickled.write_bytes(pickle.dumps({"x": WritesMarker(marker)}))
-    refused(lambda: read_npz(pickled, COLUMNS), str(pickled), "Python pickle", "never loads")
+    refused(lambda: read_npz(pickled, TASK), str(pickled), "Python pickle", "never loads")
     objects = npz(tmp_path / "objects.npz", x=np.array([WritesMarker(marker)] * 10, dtype=object),
                   y=np.zeros(10))
-    refused(lambda: read_npz(objects, COLUMNS), str(objects), "array 'x' holds Python objects",
+    refused(lambda: read_npz(objects, TASK), str(objects), "array 'x' holds Python objects",
             "save plain numeric arrays")
     assert not marker.exists()
 
 
 def test_npz_missing_arrays_name_what_is_there(tmp_path):
     path = npz(tmp_path / "d.npz", x=np.zeros((10, 4, 4)), labels=np.zeros(10))
-    refused(lambda: read_npz(path, COLUMNS), str(path), "missing array(s) y", "it has: x, labels")
+    refused(lambda: read_npz(path, TASK), str(path), "missing array 'y': task regression needs labels",
+            "it has: x, labels", "task: none")
+    assert read_npz(path, "none").labels is None
+    only_labels = npz(tmp_path / "y.npz", y=np.zeros(10))
+    refused(lambda: read_npz(only_labels, TASK), str(only_labels), "holds no input array (it has: y)")
 
 
 @pytest.mark.parametrize("name, values, found", [
     ("x", np.array([["a"] * 4] * 10), "holds text (dtype <U1)"),
     ("x", np.zeros((10, 4, 4), complex), "holds complex numbers"),
-    ("x", np.zeros((10, 4, 4), bool), "holds booleans"),
+    ("x", np.zeros((10, 4), "S3"), "holds bytes"),
+    ("mask", np.zeros((10, 4), "datetime64[s]"), "array 'mask' holds dates"),
+    ("y", np.zeros(10, bool), "array 'y' holds booleans"),
     ("y", np.array(["fast"] * 10), "array 'y' holds text"),
     ("groups", np.arange(10) / 2, "array 'groups' holds floats (dtype float64)"),
 ])
 def test_npz_arrays_of_the_wrong_type(tmp_path, name, values, found):
     path = npz(tmp_path / "d.npz", **{**good_arrays(), "groups": np.arange(10), name: values})
-    refused(lambda: read_npz(path, COLUMNS), str(path), found, "expected")
+    refused(lambda: read_npz(path, TASK), str(path), found, "expected")
 
 
 @pytest.mark.parametrize("arrays, culprit", [
-    ({"x": np.zeros((10, 16))}, "array 'x' has shape (10, 16); expected images"),
+    ({"x": np.zeros(())}, "array 'x' has shape (); expected a model input"),
     ({"x": np.zeros((10, 0, 4, 3))}, "array 'x' has shape (10, 0, 4, 3)"),
     ({"y": np.zeros(())}, "array 'y' has shape ()"),
     ({"y": np.zeros((10, 0))}, "array 'y' has shape (10, 0)"),
-    ({"y": np.zeros(9)}, "'x' has 10 samples but 'y' has 9 labels"),
+    ({"y": np.zeros(9)}, "different numbers of samples (first axis): 'x' 10, 'y' 9"),
+    ({"ids": np.zeros((11, 3), np.int64)}, "'x' 10, 'y' 10, 'ids' 11"),
     ({"groups": np.arange(9)}, "array 'groups' has shape (9,) for 10 samples"),
     ({"x": np.zeros((0, 4, 4)), "y": np.zeros(0)}, "holds no samples"),
 ])
 def test_npz_arrays_whose_shapes_do_not_agree(tmp_path, arrays, culprit):
     path = npz(tmp_path / "d.npz", **{**good_arrays(), **arrays})
-    refused(lambda: read_npz(path, COLUMNS), str(path), culprit)
+    refused(lambda: read_npz(path, TASK), str(path), culprit)
 
 
 def test_npz_non_finite_values_name_the_first_sample(tmp_path):
     x = np.zeros((10, 4, 4), np.float32)
     x[3, 1, 1], x[7, 0, 0] = np.nan, np.inf
     path = npz(tmp_path / "nan.npz", x=x, y=np.zeros(10))
-    refused(lambda: read_npz(path, COLUMNS), str(path), "array 'x': sample 3 (and 1 more) holds NaN or Inf")
+    refused(lambda: read_npz(path, TASK), str(path), "array 'x': sample 3 (and 1 more) holds NaN or Inf")
     y = np.zeros((10, 2))
     y[5, 1] = 1e300  # finite in float64, Inf in float32
     path = npz(tmp_path / "big.npz", x=np.zeros((10, 4, 4)), y=y)
-    refused(lambda: read_npz(path, COLUMNS), str(path), "array 'y': sample 5 holds", "float32")
+    refused(lambda: read_npz(path, TASK), str(path), "array 'y': sample 5 holds", "float32")
 
 
 def test_npz_whose_header_claims_more_than_memory_is_refused_unread(tmp_path):
@@ -146,7 +156,7 @@ def test_npz_whose_header_claims_more_than_memory_is_refused_unread(tmp_path):
     with zipfile.ZipFile(path, "w") as archive:
         archive.writestr("x.npy", header.getvalue())
         archive.writestr("y.npy", b"")
-    refused(lambda: read_npz(path, COLUMNS), str(path), "array 'x' (1000000000, 1000, 1000, 3) needs",
+    refused(lambda: read_npz(path, TASK), str(path), "array 'x' (1000000000, 1000, 1000, 3) needs",
             "more than half of this machine's memory")
 
 
@@ -154,9 +164,9 @@ def test_npz_whose_header_claims_more_than_memory_is_refused_unread(tmp_path):
 def test_paths_that_are_not_regular_files_fail_without_opening(tmp_path):
     pipe = tmp_path / "pipe.npz"
     os.mkfifo(pipe)
-    refused(lambda: read_npz(pipe, COLUMNS), str(pipe), "is a named pipe, not a regular file")
-    refused(lambda: read_npz(tmp_path, COLUMNS), str(tmp_path), "is a directory, not a regular file")
-    refused(lambda: read_npz(tmp_path / "nope.npz", COLUMNS), "nope.npz: not found")
+    refused(lambda: read_npz(pipe, TASK), str(pipe), "is a named pipe, not a regular file")
+    refused(lambda: read_npz(tmp_path, TASK), str(tmp_path), "is a directory, not a regular file")
+    refused(lambda: read_npz(tmp_path / "nope.npz", TASK), "nope.npz: not found")
     os.mkfifo(tmp_path / "data.csv")
     refused(lambda: read_table(tmp_path / "data.csv", COLUMNS), "data.csv: is a named pipe")
 
@@ -231,7 +241,7 @@ def test_csv_spaces_around_names_and_values_are_ignored(tmp_path):
     ("7", "data.csv:2: image '7' not found in"),
     ("../0.png", "data.csv:2: image_name '../0.png' points outside"),
     ("/etc/passwd", "data.csv:2: image_name '/etc/passwd' points outside"),
-    ("sub", "rec/sub is a directory, not a regular file; expected a PNG or JPEG image"),
+    ("sub", "rec/sub is a directory, not a regular file; expected a PNG, JPEG or BMP image"),
 ])
 def test_image_names_that_do_not_name_an_image_in_the_folder(tmp_path, name, culprit):
     folder = recording(tmp_path, f"image_name,v,w\n{name},1,2\n")
@@ -255,7 +265,7 @@ def test_damaged_images_and_bombs_name_the_row_and_file(tmp_path):
     noise = io.BytesIO()
     Image.fromarray(np.random.default_rng(0).integers(0, 255, (16, 16, 3), dtype=np.uint8)).save(noise, "PNG")
     cases = {
-        "0.png": (b"not an image at all", "not a readable PNG or JPEG image"),
+        "0.png": (b"not an image at all", "not a readable PNG, JPEG or BMP image"),
         "1.png": (noise.getvalue()[:400], "damaged or truncated"),
         "2.png": (png_header(9000, 9000), "is 9000×9000 pixels, more than the"),
         "3.png": (png_header(100_000, 100_000), "refused as a decompression bomb"),
@@ -276,7 +286,7 @@ def test_truncated_jpeg_and_other_formats_are_refused(tmp_path):
         (folder / "frame.jpg").write_bytes(buffer.getvalue()[:cut])
         refused(lambda: read(folder), "data.csv:2: ", "frame.jpg", "truncated")
     Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(folder / "frame.jpg", "GIF")
-    refused(lambda: read(folder), "frame.jpg", "not a readable PNG or JPEG image")
+    refused(lambda: read(folder), "frame.jpg", "not a readable PNG, JPEG or BMP image")
 
 
 def test_images_of_mixed_sizes_name_the_first_that_differs(tmp_path):
@@ -284,7 +294,7 @@ def test_images_of_mixed_sizes_name_the_first_that_differs(tmp_path):
     refused(lambda: read(folder), f"data.csv:4: image {folder / '2.png'} is 20×16, but the first image "
                                   f"({folder / '0.png'}) is 16×16", "preprocess.resize")
     resize = Preprocess(resize=(8, 8))
-    images, _, _ = read_folders((folder,), COLUMNS, lambda image: data.geometric(image, resize))
+    images, _, _ = read_folders((folder,), COLUMNS, lambda image: geometric(image, resize))
     assert images.shape == (4, 8, 8, 3)
 
 
@@ -333,8 +343,8 @@ def test_preprocessing_that_does_not_fit_the_images(tmp_path):
     refused(lambda: prepare(tmp_path, path, preprocess=Preprocess(crop=(20, 30, None, None))),
             "dataset.preprocess.crop {top: 20, bottom: 30} leaves no pixels of a 8×8 image")
     directory, info = prepare(tmp_path, path, preprocess=Preprocess(resize=(4, 6)))  # grayscale resized
-    assert info["sample_shape"] == [4, 6, 1]
-    assert np.load(directory / "test_x.npy").dtype == np.uint8
+    assert info["inputs"] == [{"name": "x", "shape": [4, 6, 1], "dtype": "uint8", "image": True}]
+    assert np.load(directory / "test__x.npy").dtype == np.uint8
 
 
 def test_split_needs_enough_groups(tmp_path):
@@ -358,7 +368,7 @@ def test_cli_truncated_npz_and_nan_labels_exit_2(tiny_project):
     data_npz = tiny_project / "data.npz"
     (tiny_project / "cut.npz").write_bytes(data_npz.read_bytes()[:500])
     code, err = run_with_dataset(tiny_project, "npz: cut.npz")
-    assert code == 2 and f"error: dataset: {tiny_project / 'cut.npz'}: is a damaged or truncated" in err
+    assert code == 2 and f"{tiny_project / 'cut.npz'}: is a damaged or truncated" in err
     arrays = dict(np.load(data_npz))
     arrays["y"][40, 0] = np.nan
     np.savez(tiny_project / "nan.npz", **arrays)
@@ -371,4 +381,4 @@ def test_cli_folder_with_a_corrupt_image_exits_2(tiny_project):
     (folder / "2.png").write_bytes(b"\x89PNG\r\n\x1a\n broken")
     code, err = run_with_dataset(tiny_project, "folder: rec")
     assert code == 2
-    assert f"{folder / 'data.csv'}:4: {folder / '2.png'}: not a readable PNG or JPEG image" in err
+    assert f"{folder / 'data.csv'}:4: {folder / '2.png'}: not a readable PNG, JPEG or BMP image" in err

@@ -6,11 +6,13 @@ import numpy as np
 import pytest
 
 from bench_matrix.workload.driving import (
+    BEND_CLASSES,
     Camera,
     Circuit,
     DrivingData,
     ExpertController,
     Lighting,
+    bend_classes,
     generate,
     render,
 )
@@ -28,7 +30,8 @@ def circuit() -> Circuit:
     return Circuit.from_seed(11)
 
 
-def _pose(circuit: Circuit, s: float, offset: float = 0.0, yaw_error: float = 0.0) -> tuple[float, float, float]:
+def _pose(circuit: Circuit, s: float, offset: float = 0.0,
+          yaw_error: float = 0.0) -> tuple[float, float, float]:
     x, y, heading = circuit.pose_at(s, offset)
     return float(x), float(y), float(heading) + yaw_error
 
@@ -66,6 +69,18 @@ def test_labels_are_spread_out(data: DrivingData) -> None:
     assert v.std() > 2.0 and v.max() - v.min() > 12.0
     clipped = (np.abs(w) > 7.09).mean()
     assert clipped < 0.1
+
+
+def test_bend_classes_are_five_reasonably_balanced(data: DrivingData) -> None:
+    shares = np.bincount(bend_classes(data.labels[:, 1]), minlength=len(BEND_CLASSES)) / len(data)
+    assert BEND_CLASSES == ("sharp_left", "left", "straight", "right", "sharp_right")
+    assert shares.min() > 0.12 and shares.max() < 0.28, shares
+
+
+def test_bend_classes_follow_the_turn_command() -> None:
+    w = np.array([5.0, 3.0, 2.0, 1.0, 0.0, -1.0, -2.0, -3.0, -5.0])  # w > 0 turns left; ties: the gentler
+    assert bend_classes(w).tolist() == [0, 1, 1, 2, 2, 2, 3, 3, 4]
+    assert bend_classes(w).dtype == np.int64
 
 
 def test_groups_cover_every_circuit_evenly(data: DrivingData) -> None:
@@ -121,7 +136,8 @@ def test_expert_slows_for_bends(circuit: Circuit) -> None:
     bend = np.abs(circuit.curvature(s[:, None] + np.linspace(*expert.preview, 30))).mean(axis=1)
     assert v[np.argmax(bend)] < v[np.argmin(bend)] - 5.0
     assert np.corrcoef(v, bend)[0, 1] < -0.7
-    assert np.all(v <= np.sqrt(expert.lateral_accel / np.maximum(bend, 1e-9)) + 1e-6)  # never faster than the bend allows
+    limit = np.sqrt(expert.lateral_accel / np.maximum(bend, 1e-9))
+    assert np.all(v <= limit + 1e-6)  # never faster than the bend allows
     assert np.corrcoef(w, circuit.curvature(s + 4.0))[0, 1] > 0.8  # turns with the road
 
 

@@ -204,14 +204,16 @@ def prepare_data(project: Path, case: fc.Case) -> Outcome:
     """What `run` does with a dataset, in this process: validate the matrix, then read, check and split the
     data (the job a child does); a UserError there stops the run with exit 2, anything else is a traceback."""
     from bench_matrix.backends.registry import available
-    from bench_matrix.jobs import prepare_dataset
+    from bench_matrix.jobs import DatasetJob
+    from bench_matrix.jobs.prepare import prepare_dataset
     from bench_matrix.matrix import load_matrix
+    from bench_matrix.workspace import Workspace
 
     (project / "tiny.onnx").write_bytes(fc.onnx_model())
     (project / MATRIX).write_text(case.build(project))
     try:
         matrix = load_matrix(project / MATRIX, backends=list(available()))
-        prepare_dataset({"dataset": matrix.dataset, "workspace": str(project / "ws")})
+        prepare_dataset(DatasetJob(workspace=Workspace(project / "ws"), dataset=matrix.dataset))
     except UserError as exc:
         return Outcome(exc.exit_code, f"error: dataset: {exc}")
     except Exception:

@@ -10,6 +10,7 @@ import pytest
 
 from bench_matrix.errors import UserError
 from bench_matrix.launcher import run_job
+from launcher_jobs import AbortJob, EchoJob, FailJob, SleepJob
 
 
 @pytest.fixture(autouse=True)
@@ -18,14 +19,14 @@ def tests_importable(monkeypatch):
 
 
 def test_crash_without_result_reports_signal_and_log_tail(tmp_path):
-    outcome = run_job({"mode": "launcher_jobs:abort"}, tmp_path / "jobs", tmp_path / "log.txt", timeout_s=60)
+    outcome = run_job(AbortJob(), tmp_path / "jobs", tmp_path / "log.txt", timeout_s=60)
     assert not outcome.ok
     assert "killed by signal SIGABRT" in outcome.error
     assert "about to abort" in outcome.error  # the log tail is part of the reason
 
 
 def test_exception_is_reported_with_its_location(tmp_path):
-    outcome = run_job({"mode": "launcher_jobs:fail"}, tmp_path / "jobs", tmp_path / "log.txt", timeout_s=60)
+    outcome = run_job(FailJob(), tmp_path / "jobs", tmp_path / "log.txt", timeout_s=60)
     assert not outcome.ok and outcome.error.startswith("ValueError: bad model")
     assert "launcher_jobs.py" in outcome.error
 
@@ -33,7 +34,7 @@ def test_exception_is_reported_with_its_location(tmp_path):
 def test_timeout_kills_the_child(tmp_path):
     begin = time.monotonic()
     phases = []
-    outcome = run_job({"mode": "launcher_jobs:sleep", "seconds": 60}, tmp_path / "jobs", tmp_path / "log.txt",
+    outcome = run_job(SleepJob(60), tmp_path / "jobs", tmp_path / "log.txt",
                       timeout_s=2, on_phase=phases.append)
     assert time.monotonic() - begin < 20
     assert "timed out after 2 s (in phase 'measure')" in outcome.error
@@ -42,7 +43,7 @@ def test_timeout_kills_the_child(tmp_path):
 
 def test_value_and_phases_come_back(tmp_path):
     phases = []
-    outcome = run_job({"mode": "launcher_jobs:echo", "value": [1, "a"]}, tmp_path / "jobs", tmp_path / "log.txt",
+    outcome = run_job(EchoJob([1, "a"]), tmp_path / "jobs", tmp_path / "log.txt",
                       timeout_s=60, on_phase=phases.append)
     assert outcome.ok and outcome.value == [1, "a"]
     assert phases == ["convert", "measure"]
@@ -52,7 +53,7 @@ def test_value_and_phases_come_back(tmp_path):
 
 @pytest.mark.parametrize("timeout_s", [float("inf"), 1e30, 10**400])
 def test_a_limit_too_long_for_a_timer_waits_as_long_as_needed(tmp_path, timeout_s):
-    outcome = run_job({"mode": "launcher_jobs:echo", "value": 7}, tmp_path / "jobs", tmp_path / "log.txt",
+    outcome = run_job(EchoJob(7), tmp_path / "jobs", tmp_path / "log.txt",
                       timeout_s=timeout_s)
     assert outcome.ok and outcome.value == 7
 
@@ -61,6 +62,6 @@ def test_a_limit_too_long_for_a_timer_waits_as_long_as_needed(tmp_path, timeout_
 def test_a_limit_that_is_not_a_positive_number_is_refused_before_starting(tmp_path, timeout_s):
     with pytest.raises(UserError, match=r"a time limit must be a positive number of seconds, got .*"
                                         r"timeout_s"):
-        run_job({"mode": "launcher_jobs:echo", "value": 7}, tmp_path / "jobs", tmp_path / "log.txt",
+        run_job(EchoJob(7), tmp_path / "jobs", tmp_path / "log.txt",
                 timeout_s=timeout_s)
     assert not (tmp_path / "jobs").exists()

@@ -10,7 +10,8 @@ import pytest
 from bench_matrix.errors import MatrixError
 from bench_matrix.matrix import load_matrix
 from bench_matrix.matrix.expand import training_key, Verdict, combinations, plan, verdict_key
-from bench_matrix.matrix.schema import schema_json
+from bench_matrix.matrix.schema import PRECISIONS, schema_json
+from bench_matrix.matrix.spec import DatasetSpec
 
 BASE = """\
 models:
@@ -194,3 +195,12 @@ def test_published_schema_is_current():
     published = Path(__file__).parents[1] / "docs" / "matrix.schema.json"
     assert published.read_text() == schema_json(), "run `bench-matrix schema > docs/matrix.schema.json`"
     assert json.loads(schema_json())["required"] == ["models", "dataset", "axes"]
+
+
+def test_docs_show_the_current_default_matrix_and_defaults():
+    root = Path(__file__).parents[1]
+    docs = (root / "docs" / "matrix.md").read_text()
+    assert (root / "matrix.yaml").read_text() in docs, "docs/matrix.md §1 must show matrix.yaml as it is"
+    assert f"circuits: {DatasetSpec.circuits}      # default {DatasetSpec.circuits};" in docs
+    for precision in PRECISIONS:
+        assert f"`{precision}`" in docs and f"`{precision}`" in (root / "docs" / "plugins.md").read_text()

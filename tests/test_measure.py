@@ -1,4 +1,4 @@
-"""Statistics, accuracy, sizes and the timing loop, checked against values computed by hand."""
+"""Statistics, sizes and the timing loop, checked against values computed by hand (accuracy: test_metrics.py)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from bench_matrix.measure.size import artifact_size
-from bench_matrix.measure.stats import accuracy, latency_summary
+from bench_matrix.measure.stats import latency_summary
 from bench_matrix.measure.timing import LoopSettings, drift, steady_time_calls, throughput, time_calls
 
 
@@ -27,21 +27,6 @@ def test_latency_summary_percentiles_and_units():
 def test_latency_summary_rejects_empty():
     with pytest.raises(ValueError):
         latency_summary(np.array([], dtype=np.int64))
-
-
-def test_accuracy_against_labels_and_baseline():
-    labels = np.array([[0.0, 1.0], [1.0, 0.0]])
-    pred = np.array([[0.5, 1.0], [1.0, -1.0]], dtype=np.float32)
-    out = accuracy(pred, labels, reference=np.array([[0.5, 1.0], [1.0, -0.5]]))
-    assert out["mse"] == pytest.approx((0.25 + 0 + 0 + 1) / 4)
-    assert out["mae"] == pytest.approx((0.5 + 0 + 0 + 1) / 4)
-    assert out["mse_per_output"] == pytest.approx([0.125, 0.5])
-    assert out["max_abs_diff_vs_baseline"] == pytest.approx(0.5)
-
-
-def test_accuracy_rejects_shape_mismatch():
-    with pytest.raises(ValueError, match="outputs have shape"):
-        accuracy(np.zeros((4, 3)), np.zeros((4, 2)), None)
 
 
 def test_artifact_size_sums_every_file_and_compresses(tmp_path):

@@ -16,6 +16,7 @@ TESTS = Path(__file__).resolve().parent
 sys.path.insert(0, str(TESTS))
 
 import tiny_models  # noqa: E402
+from convert_helper import request_for  # noqa: E402
 from bench_matrix_backends import _ort_gpu  # noqa: E402
 from bench_matrix_backends._ort_gpu import CACHE_DIR, CALIBRATION_TABLE, EngineSpec  # noqa: E402
 from bench_matrix_backends.onnxruntime import (  # noqa: E402
@@ -26,8 +27,7 @@ from bench_matrix_backends.onnxruntime import (  # noqa: E402
 )
 
 from bench_matrix import hardware  # noqa: E402
-from bench_matrix.backends.base import ConvertRequest  # noqa: E402
-from bench_matrix.matrix.spec import StrategySpec  # noqa: E402
+from bench_matrix.backends.base import ConvertRequest, Session  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
 
 BACKEND = OnnxRuntimeBackend()
@@ -45,9 +45,12 @@ CALIBRATION = np.concatenate([X, tiny_models.images(14, 1), 2 * tiny_models.imag
 def _request(source: SourceModel, out: Path, kind: str = "none", precision: str = "fp32", target: str = "cpu",
              max_batch: int = 1, **options: Any) -> ConvertRequest:
     out.mkdir(parents=True, exist_ok=True)
-    return ConvertRequest(source=source, strategy=StrategySpec(kind, kind, options), precision=precision,
-                          target=target, out_dir=out, calibration=lambda n: CALIBRATION[:n], threads=1, seed=0,
-                          max_batch=max_batch)
+    return request_for(CALIBRATION, source, out, kind, precision, target, None, max_batch, **options)
+
+
+def _predict(session: Session, x: np.ndarray) -> np.ndarray:
+    (out,) = session.predict({"input": x})
+    return out
 
 
 def _fp32_onnx(source: SourceModel, out: Path) -> Path:
@@ -79,7 +82,7 @@ def test_cpu_and_cuda_provider_lists(target: str, precision: str, expected: list
 @pytest.mark.parametrize("precision", ["fp32", "fp16", "int8"])
 def test_tensorrt_options_keep_engines_and_table_in_the_artifact(precision: str, tmp_path: Path) -> None:
     artifact = tmp_path / "artifact"
-    spec = EngineSpec("input", (3, 66, 200), 32, artifact / CACHE_DIR, precision == "int8", tmp_path / "timing")
+    spec = EngineSpec((("input", (3, 66, 200)),), 32, artifact / CACHE_DIR, precision == "int8", tmp_path / "timing")
     (name, options), (cuda, cuda_options), cpu = _ort_gpu.providers("tensorrt", precision, spec)
     expected = {"trt_fp16_enable": str(precision == "fp16"), "trt_int8_enable": str(precision == "int8"),
                 "trt_engine_cache_enable": "True", "trt_engine_cache_path": str(artifact / CACHE_DIR),
@@ -96,7 +99,7 @@ def test_tensorrt_options_keep_engines_and_table_in_the_artifact(precision: str,
 
 
 def test_a_fixed_batch_model_gets_no_shape_profile(tmp_path: Path) -> None:
-    options = _ort_gpu.tensorrt_options("fp16", EngineSpec("image", (3, 16, 16), None, tmp_path, False))
+    options = _ort_gpu.tensorrt_options("fp16", EngineSpec((("image", (3, 16, 16)),), None, tmp_path, False))
     assert not any(key.startswith("trt_profile") for key in options)
     assert options["trt_timing_cache_enable"] == "False" and "trt_timing_cache_path" not in options
 
@@ -104,8 +107,10 @@ def test_a_fixed_batch_model_gets_no_shape_profile(tmp_path: Path) -> None:
 def test_load_finds_the_engines_where_the_artifact_was_moved(tmp_path: Path) -> None:
     """The build's options and the load's differ only in the cache's place and the timing cache, so that the
     provider's engine and profile files (named from the model's file name and graph, not its path) match."""
-    built = EngineSpec("input", (3, 16, 16), 8, tmp_path / "x.tmp1" / "model" / CACHE_DIR, True, tmp_path / "timing")
-    meta = {"input_name": "input", "tensorrt": json.loads(json.dumps({**built.to_meta(), "engines": ["e.engine"]}))}
+    built = EngineSpec((("input", (3, 16, 16)),), 8, tmp_path / "x.tmp1" / "model" / CACHE_DIR, True,
+                       tmp_path / "timing")
+    meta = {"inputs": {"input": "input"},
+            "tensorrt": json.loads(json.dumps({**built.to_meta(), "engines": ["e.engine"]}))}
     final = tmp_path / "x" / "model"
     loaded = EngineSpec.at_load(final, meta)
     assert loaded.cache_dir == final / CACHE_DIR and loaded.timing_dir is None
@@ -115,7 +120,8 @@ def test_load_finds_the_engines_where_the_artifact_was_moved(tmp_path: Path) -> 
            {k: v for k, v in load_options.items() if k not in place}
     assert load_options["trt_timing_cache_enable"] == "False"
     with pytest.raises(RuntimeError, match="no 'tensorrt' entry.*delete it"):
-        EngineSpec.at_load(final, {"input_name": "input"})
+        EngineSpec.at_load(final, {"inputs": {"input": "input"}})
+    assert loaded == EngineSpec((("input", (3, 16, 16)),), 8, final / CACHE_DIR, True)
 
 
 @pytest.mark.parametrize("method", ["minmax", "percentile"])
@@ -129,15 +135,15 @@ def test_calibration_table_ranges_each_activation_from_the_calibration_split(met
                        calibration_samples=30)
     cache = request.out_dir / CACHE_DIR
     cache.mkdir()
-    feeds = calibration_feeds(request, request.strategy, None)
-    tensors = _ort_gpu.write_calibration_table(model, feed_reader("input", feeds), METHODS[method], cache)
+    feeds = calibration_feeds(request, request.step, {"input": "input"}, None)
+    tensors = _ort_gpu.write_calibration_table(model, feed_reader(feeds), METHODS[method], cache)
     assert [p.name for p in cache.iterdir()] == [CALIBRATION_TABLE]  # only the file the provider reads
     table = _read_table(cache / CALIBRATION_TABLE)
     graph = onnx.load(str(model)).graph
     activations = {i.name for i in graph.input} | {o for node in graph.node for o in node.output}
     assert set(table) == activations and tensors == len(activations)
     fed = CALIBRATION[:30]
-    np.testing.assert_array_equal(np.concatenate(feeds), fed)
+    np.testing.assert_array_equal(np.concatenate([f["input"] for f in feeds]), fed)
     outputs = ort.InferenceSession(str(model), providers=[CPU]).run(None, {"input": fed})[0]
     if method == "minmax":  # symmetric: the largest magnitude each tensor took on the samples fed
         assert table["input"] == float(np.abs(fed).max())
@@ -269,6 +275,21 @@ def test_tensorrt_int8_refuses_per_channel(source: SourceModel, tmp_path: Path) 
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize(("inputs", "words"), [
+    ((("image", (3, None, 16)),), "'image' has a free axis (shape (3, None, 16) per sample)"),
+    ((("ids", (8,)), ("a:b", (8,))), "'a:b' cannot be named in the TensorRT provider's shape profiles")])
+def test_tensorrt_refuses_inputs_its_profiles_cannot_state(inputs: Any, words: str) -> None:
+    assert words in (_ort_gpu.profile_reason(inputs) or "")
+    assert _ort_gpu.profile_reason((("ids", (8,)), ("mask", (8,)))) is None
+
+
+def test_tensorrt_profiles_name_every_input(tmp_path: Path) -> None:
+    spec = EngineSpec((("ids", (128,)), ("mask", (128,))), 8, tmp_path, False)
+    options = _ort_gpu.tensorrt_options("fp16", spec)
+    assert options["trt_profile_min_shapes"] == "ids:1x128,mask:1x128"
+    assert options["trt_profile_max_shapes"] == "ids:8x128,mask:8x128"
+
+
 def test_probe_on_this_machine_names_each_missing_piece() -> None:
     import onnxruntime as ort
 
@@ -318,15 +339,15 @@ def test_device_session_binds_the_batch_once_and_copies_the_output_back(source: 
 
     model = _fp32_onnx(source, tmp_path)
     session = _ort_gpu.open_session(model, "cpu", "fp32", 1)
-    device = _ort_gpu.DeviceSession(session, "input", "cpu")
+    device = _ort_gpu.DeviceSession(session, {"input": "input"}, "cpu")
     expected = session.run(None, {"input": X})[0]
-    prepared = device.prepare(np.asfortranarray(X.astype(np.float64)))
+    prepared = device.prepare({"input": np.asfortranarray(X.astype(np.float64))})
     assert isinstance(prepared, ort.IOBinding)
     for _ in range(2):  # one binding serves every timed call
-        got = device.fetch(device.execute(prepared))
+        (got,) = device.fetch(device.execute(prepared))
         assert got.dtype == np.float32
         np.testing.assert_array_equal(got, expected)
-    np.testing.assert_array_equal(device.predict(X[:3]), expected[:3])
+    np.testing.assert_array_equal(_predict(device, X[:3]), expected[:3])
     assert device.info() == {"providers": [CPU], "threads": 1, "io_binding": "cpu:0"}
 
 
@@ -348,7 +369,7 @@ def test_cuda_provider_fp32_is_ieee_and_fp16_close(precision: str, source: Sourc
     info = session.info()
     assert info["providers"][0] == CUDA and info["io_binding"] == "cuda:0" and info["use_tf32"] == "0"
     atol = TOLERANCE[precision] * float(np.abs(reference).max())
-    np.testing.assert_allclose(session.predict(X), reference, rtol=0, atol=atol)
+    np.testing.assert_allclose(_predict(session, X), reference, rtol=0, atol=atol)
 
 
 @pytest.mark.gpu
@@ -369,13 +390,13 @@ def test_tensorrt_int8_engines_live_in_the_artifact(source: SourceModel, tmp_pat
     built.rename(final)
     files = {p.name: p.stat().st_mtime_ns for p in (final / CACHE_DIR).iterdir()}
     session = BACKEND.load(final, json.loads(json.dumps(meta)), "tensorrt", "int8", 1)
-    got = session.predict(X[:8])  # batches 1..8: the engine's shape profile
+    got = _predict(session, X[:8])  # batches 1..8: the engine's shape profile
     assert {p.name: p.stat().st_mtime_ns for p in (final / CACHE_DIR).iterdir()} == files  # loaded, not rebuilt
     assert session.info()["providers"][0] == TRT and session.info()["io_binding"] == "cuda:0"
     reference = ort.InferenceSession(str(final / "model.onnx"), providers=[CPU]).run(None, {"input": X[:8]})[0]
     np.testing.assert_allclose(got, reference, rtol=0, atol=0.1 * float(reference.std(axis=0).min()))
-    single = session.prepare(X[:1])
-    np.testing.assert_array_equal(session.fetch(session.execute(single)), session.predict(X[:1]))
+    single = session.prepare({"input": X[:1]})
+    np.testing.assert_array_equal(session.fetch(session.execute(single))[0], _predict(session, X[:1]))
 
 
 def test_gpu_requirements_pin_the_releases_of_the_lock() -> None:

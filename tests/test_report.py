@@ -148,7 +148,7 @@ def test_json_is_the_records(store_path: Path, tmp_path: Path, capsys: pytest.Ca
     data = json.loads(capsys.readouterr().out)
     assert len(data) == 7
     assert set(data[0]) == {"cell", "status", "reason", "metrics", "artifact_path", "env", "started_at",
-                            "finished_at", "fingerprint", "matrix"}
+                            "finished_at", "fingerprint", "matrix", "host"}
     assert {d["cell"]["model"] for d in data} == {"pilotnet", "tiny"}
 
 

@@ -24,6 +24,7 @@ from bench_matrix.backends.base import Backend, Session  # noqa: E402
 from bench_matrix.matrix.spec import StrategySpec  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
 from bench_matrix.sources.tensorflow import keras, tensorflow  # noqa: E402
+from bench_matrix.tensors import TensorSpec  # noqa: E402
 from bench_matrix_backends._tf import probe_tftrt  # noqa: E402
 from bench_matrix_backends.tensorflow import KerasPredictBackend, TensorFlowBackend  # noqa: E402
 from bench_matrix_backends.tftrt import SignatureSession, TFTRTBackend, engine_ops, export_serving  # noqa: E402
@@ -40,7 +41,7 @@ pytestmark = pytest.mark.filterwarnings("ignore:You are saving your model as an 
 
 def _source(path: Path, fmt: str) -> SourceModel:
     return SourceModel(name="tiny", framework="tensorflow", format=fmt, path=path, sha256="not checked here",
-                       input_shape=tiny_keras.INPUT_SHAPE)
+                       inputs=(TensorSpec("input", tiny_keras.INPUT_SHAPE),))
 
 
 @pytest.fixture(scope="module")
@@ -67,9 +68,15 @@ def _convert(backend: Backend, source: SourceModel, out: Path, kind: str = "none
     return convert_with(CALIBRATION, backend, source, out, kind, precision, target, **options)
 
 
+def _predict(session: Session, x: np.ndarray) -> np.ndarray:
+    """The one output of the tiny model for images `x`."""
+    (out,) = session.predict({"input": x})
+    return out
+
+
 def _predict_batches(session: Session) -> np.ndarray:
     """Outputs for X fed in batches of 1, 5 and 26 (one tf.function serves every batch size)."""
-    return np.concatenate([session.predict(X[:1]), session.predict(X[1:6]), session.predict(X[6:])])
+    return np.concatenate([_predict(session, X[:1]), _predict(session, X[1:6]), _predict(session, X[6:])])
 
 
 @pytest.mark.parametrize("fmt", list(FORMATS))
@@ -85,13 +92,13 @@ def test_native_backends_reproduce_keras(name: str, fmt: str, sources: dict[str,
     got = _predict_batches(session)
     assert got.dtype == np.float32 and got.shape == reference.shape
     np.testing.assert_allclose(got, reference, rtol=0, atol=1e-5)
-    np.testing.assert_allclose(session.predict(X), reference, rtol=0, atol=1e-5)  # a batch of 32
+    np.testing.assert_allclose(_predict(session, X), reference, rtol=0, atol=1e-5)  # a batch of 32
     info = session.info()
     assert info["call_path"] == ("tf.function" if name == "tensorflow" else "model.predict")
     assert info["device"] == "/CPU:0" and {"intra_op_threads", "inter_op_threads"} <= set(info)
     if name == "tensorflow":
         assert info["output_device"].endswith("CPU:0")
-        assert session.prepare(X[:2]).dtype == tensorflow().float32
+        assert [t.dtype for t in session.prepare({"input": X[:2]})] == [tensorflow().float32]
 
 
 def test_saved_model_artifact_is_self_contained(sources: dict[str, SourceModel], reference: np.ndarray,
@@ -101,7 +108,7 @@ def test_saved_model_artifact_is_self_contained(sources: dict[str, SourceModel],
     meta = _convert(BACKENDS["tensorflow"], _source(copy, "saved_model"), tmp_path / "artifact")
     shutil.rmtree(copy)
     session = BACKENDS["tensorflow"].load(tmp_path / "artifact", meta, "cpu", "fp32", 1)
-    np.testing.assert_allclose(session.predict(X), reference, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(_predict(session, X), reference, rtol=0, atol=1e-5)
 
 
 def test_threads_are_pinned_in_a_fresh_process_and_listing_never_imports_tensorflow(
@@ -117,7 +124,7 @@ backends = [tensorflow.TensorFlowBackend(), tensorflow.KerasPredictBackend(), tf
 listed = {{b.name: [b.versions(), b.invalid_reason("tensorflow", "none", "fp32", "cpu")] for b in backends}}
 imported = "tensorflow" in sys.modules
 session = backends[0].load(Path({str(tmp_path)!r}), json.loads(sys.argv[1]), "cpu", "fp32", 1)
-y = session.predict(np.load({str(tmp_path / "x.npy")!r}))
+y = session.predict({{"input": np.load({str(tmp_path / "x.npy")!r})}})[0]
 print(json.dumps({{"imported": imported, "listed": listed, "info": session.info(), "y": y.tolist()}}))
 """
     done = subprocess.run([sys.executable, "-c", script, json.dumps(meta)], capture_output=True, text=True)
@@ -237,7 +244,7 @@ def test_tftrt_serving_export_and_signature_session(sources: dict[str, SourceMod
                                                     tmp_path: Path) -> None:
     """The CPU-runnable half of TF-TRT: the SavedModel it converts and the signature call that runs its output."""
     tf = tensorflow()
-    export_serving(sources["h5"].load(), tiny_keras.INPUT_SHAPE, tmp_path / "serving")
+    export_serving(sources["h5"].load(), sources["h5"].inputs, tmp_path / "serving")
     loaded = tf.saved_model.load(str(tmp_path / "serving"))
     function = loaded.signatures["serving_default"]
     assert list(function.structured_input_signature[1]) == ["input"]

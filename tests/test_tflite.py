@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import json
 import sys
 from collections.abc import Callable
 from importlib.metadata import version
@@ -17,10 +16,12 @@ TESTS = Path(__file__).resolve().parent
 sys.path.insert(0, str(TESTS))
 
 import tiny_keras  # noqa: E402
+from convert_helper import convert_with  # noqa: E402
 
-from bench_matrix.backends.base import ConvertRequest, Session  # noqa: E402
+from bench_matrix.backends.base import Session  # noqa: E402
 from bench_matrix.matrix.spec import StrategySpec  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
+from bench_matrix.tensors import TensorSpec  # noqa: E402
 from bench_matrix.sources.tensorflow import keras, tensorflow  # noqa: E402
 from bench_matrix_backends.tflite import TFLiteBackend, interpreter_class  # noqa: E402
 
@@ -38,17 +39,19 @@ Build = Callable[[str], tuple[Path, dict[str, Any]]]
 
 def _source(path: Path, input_shape: tuple[int, ...]) -> SourceModel:
     return SourceModel(name=path.stem, framework="tensorflow", format="keras", path=path,
-                       sha256=hashlib.sha256(path.read_bytes()).hexdigest(), input_shape=input_shape)
+                       sha256=hashlib.sha256(path.read_bytes()).hexdigest(), inputs=(TensorSpec("input", input_shape),))
 
 
 def _convert(source: SourceModel, out: Path, kind: str, precision: str, calibration: np.ndarray = CALIBRATION,
              **options: Any) -> dict[str, Any]:
     out.mkdir(parents=True)
-    request = ConvertRequest(source=source, strategy=StrategySpec(kind, kind, options), precision=precision,
-                             target="cpu", out_dir=out, calibration=lambda n: calibration[:n], threads=1, seed=0)
-    meta = BACKEND.convert(request)
-    json.dumps(meta)  # the runner stores it as JSON
-    return meta
+    return convert_with(calibration, BACKEND, source, out, kind, precision, **options)
+
+
+def _predict(session: Session, x: np.ndarray) -> np.ndarray:
+    """The one output of a single-input model for `x`."""
+    (out,) = session.predict({"input": x})
+    return out
 
 
 def _load(out: Path, meta: dict[str, Any], precision: str = "fp32", threads: int = 1) -> Session:
@@ -90,7 +93,7 @@ def build(source: SourceModel, tmp_path_factory: pytest.TempPathFactory) -> Buil
 
 
 def _tensors(session: Session) -> list[dict[str, Any]]:
-    return session.prepare(X[:1]).interpreter.get_tensor_details()
+    return session.prepare({"input": X[:1]}).interpreter.get_tensor_details()
 
 
 def _dynamic_range_atol(model: Any) -> float:
@@ -112,7 +115,7 @@ def _dynamic_range_atol(model: Any) -> float:
 
 def _output_step(session: Session) -> float:
     """The scale of the model's int8 output tensor (before the float-fallback model dequantises it)."""
-    shape = list(session.prepare(X[:1]).interpreter.get_output_details()[0]["shape"])
+    shape = list(session.prepare({"input": X[:1]}).interpreter.get_output_details()[0]["shape"])
     (scale,) = [d["quantization"][0] for d in _tensors(session) if d["dtype"] == np.int8 and list(d["shape"]) == shape]
     return scale
 
@@ -144,10 +147,10 @@ def test_mode_matches_keras(mode: str, build: Build, model: Any, reference: np.n
     session = _load(out, meta, precision)
     atol = _atol(mode, session, model, reference)
     assert atol < 0.1 * reference.std(axis=0).min()  # a model that had lost the input would fail it
-    batch = session.predict(X)
+    batch = _predict(session, X)
     assert batch.dtype == np.float32 and batch.shape == reference.shape
     np.testing.assert_allclose(batch, reference, rtol=0, atol=atol)
-    singles = np.concatenate([session.predict(X[i:i + 1]) for i in range(4)])
+    singles = np.concatenate([_predict(session, X[i:i + 1]) for i in range(4)])
     np.testing.assert_allclose(singles, reference[:4], rtol=0, atol=atol)
     dtypes = {np.dtype(d["dtype"]).name for d in _tensors(session)}
     assert ("float16" in dtypes) == (mode == "fp16") and ("int8" in dtypes) == (precision == "int8")
@@ -168,14 +171,14 @@ def test_full_integer_io_is_int8_and_dequantised(build: Build, reference: np.nda
     info = session.info()
     assert info["input"]["dtype"] == info["output"]["dtype"] == "int8"
     assert info["input"]["scale"] > 0 and info["output"]["scale"] > 0
-    prepared = session.prepare(X)
-    assert prepared.x.dtype == np.int8  # quantised outside the timed call
-    raw = session.execute(prepared)
+    prepared = session.prepare({"input": X})
+    assert prepared.inputs[0][1].dtype == np.int8  # quantised outside the timed call
+    (raw,) = session.execute(prepared)
     assert raw.dtype == np.int8
     step = info["output"]["scale"]
     # Read as numbers without dequantising, the int8 outputs are off by dozens of units, not a few steps.
     assert np.abs(raw.astype(np.float32) - reference).mean() > 100 * step
-    np.testing.assert_allclose(session.fetch(raw), reference, rtol=0, atol=3 * step)
+    np.testing.assert_allclose(session.fetch([raw])[0], reference, rtol=0, atol=3 * step)
 
 
 def test_float_models_keep_float_io(build: Build) -> None:
@@ -188,16 +191,16 @@ def test_sessions_keep_one_interpreter_per_batch_size(build: Build, reference: n
     session = _load(*build("full_integer"), "int8", threads=2)
     assert session.info()["threads"] == 2
     slices = {1: slice(9, 10), 5: slice(3, 8), 32: slice(0, 32)}
-    prepared = {n: session.prepare(X[s]) for n, s in slices.items()}
+    prepared = {n: session.prepare({"input": X[s]}) for n, s in slices.items()}
     assert len({id(p.interpreter) for p in prepared.values()}) == 3
-    assert session.prepare(X[20:21]).interpreter is prepared[1].interpreter  # made once, reused
+    assert session.prepare({"input": X[20:21]}).interpreter is prepared[1].interpreter  # made once, reused
     atol = 3 * session.info()["output"]["scale"]
     for n in (32, 1, 5, 1, 32, 5, 5):  # interleaved, as the harness times them
-        got = session.fetch(session.execute(prepared[n]))
+        (got,) = session.fetch(session.execute(prepared[n]))
         assert got.shape == (n, 2)
         np.testing.assert_allclose(got, reference[slices[n]], rtol=0, atol=atol)
     with pytest.raises(ValueError, match="shape"):
-        session.prepare(np.zeros((2, 8, 8, 3), np.float32))
+        session.prepare({"input": np.zeros((2, 8, 8, 3), np.float32)})
 
 
 def test_interpreter_is_litert_when_installed(build: Build) -> None:
@@ -219,7 +222,7 @@ def test_tensorflow_interpreter_is_the_fallback(build: Build, reference: np.ndar
     assert interpreter_class() == (tf.lite.Interpreter, name)
     session = _load(*build("full_integer"), "int8")
     assert session.info()["interpreter"] == name
-    np.testing.assert_allclose(session.predict(X), reference, rtol=0, atol=3 * session.info()["output"]["scale"])
+    np.testing.assert_allclose(_predict(session, X), reference, rtol=0, atol=3 * session.info()["output"]["scale"])
 
 
 def test_conversion_is_deterministic(build: Build, source: SourceModel, tmp_path: Path) -> None:
@@ -276,14 +279,9 @@ def test_unsupported_combinations_are_explained(combo: tuple[str, str, str, str]
     assert reason and all(w in reason for w in words), reason
 
 
-@pytest.mark.parametrize(("kind", "precision", "options", "match"), [
-    ("ptq_static", "int8", {"method": "entropy"}, "min/max"),
-    ("none", "int8", {}, "does not implement none at int8"),
-])
-def test_convert_refuses_before_loading(kind: str, precision: str, options: dict[str, Any], match: str,
-                                        tmp_path: Path) -> None:
+def test_convert_refuses_before_loading(tmp_path: Path) -> None:
     missing = SourceModel(name="missing", framework="tensorflow", format="keras", path=tmp_path / "missing.keras",
-                          sha256="", input_shape=tiny_keras.INPUT_SHAPE)
-    with pytest.raises(ValueError, match=match):
-        _convert(missing, tmp_path / "out", kind, precision, **options)
+                          sha256="", inputs=(TensorSpec("input", tiny_keras.INPUT_SHAPE),))
+    with pytest.raises(ValueError, match="does not implement none at int8"):
+        _convert(missing, tmp_path / "out", "none", "int8")
     assert not any((tmp_path / "out").iterdir())

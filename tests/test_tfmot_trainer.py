@@ -1,4 +1,5 @@
-"""TfmotTrainer with the real tensorflow-model-optimization on a tiny Keras model (a few seconds per kind)."""
+"""TfmotTrainer with the real tensorflow-model-optimization on a tiny Keras model (a few seconds per kind); a
+classifier fine-tuned on cross-entropy, and a model with two inputs and two outputs."""
 
 from __future__ import annotations
 
@@ -15,11 +16,14 @@ import tiny_keras
 
 from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.sources import SourceModel
+from bench_matrix.sources.keras_qat import QAT_FORMAT, load_qat
 from bench_matrix.sources.tensorflow import keras, tensorflow
 from bench_matrix.strategies.base import FineTuneRequest, weight_stats
 from bench_matrix.strategies.tfmot import TfmotTrainer
-from bench_matrix.strategies.tfmot_models import QAT_FORMAT, load_qat, stored_kernels
+from bench_matrix.strategies.tfmot_models import stored_kernels
+from bench_matrix.tensors import TensorSpec, take
 
+IMAGE = (TensorSpec("image", tiny_keras.INPUT_SHAPE),)
 FAST = {"fraction": 1.0, "batch_size": 32, "lr": 1e-3, "min_weights": 0}  # the tiny kernels hold 32 to 1152 weights
 
 
@@ -30,7 +34,7 @@ def _sha(path: Path) -> str:
 @pytest.fixture(scope="module")
 def source(tmp_path_factory: pytest.TempPathFactory) -> SourceModel:
     path = tiny_keras.save_trained(tmp_path_factory.mktemp("src") / "tiny.keras", epochs=60)
-    return SourceModel("tiny", "tensorflow", "keras", path, _sha(path), tiny_keras.INPUT_SHAPE)
+    return SourceModel("tiny", "tensorflow", "keras", path, _sha(path), IMAGE)
 
 
 @pytest.fixture(scope="module")
@@ -39,11 +43,14 @@ def data() -> tuple[np.ndarray, np.ndarray]:
     return x, tiny_keras.colour_balance(x)
 
 
-def _run(source: SourceModel, data: Any, out: Path, *steps: tuple[str, dict[str, Any]]) -> Any:
+def _run(source: SourceModel, data: Any, out: Path, *steps: tuple[str, dict[str, Any]],
+         task: str = "regression") -> Any:
     x, y = data
+    inputs = x if isinstance(x, dict) else {"image": x}
     specs = tuple(StrategySpec(f"{kind}_{i}", kind, {**FAST, **opts}) for i, (kind, opts) in enumerate(steps))
     request = FineTuneRequest(source=source, steps=specs, out_dir=out,
-                              train=lambda f: (x[:int(len(x) * f)], y[:int(len(y) * f)]), threads=2, seed=0)
+                              train=lambda f: (take(inputs, slice(0, int(len(y) * f))), y[:int(len(y) * f)]),
+                              threads=2, seed=0, task=task)
     return TfmotTrainer().finetune(request)
 
 
@@ -210,3 +217,135 @@ def test_steps_reason() -> None:
     assert t.steps_reason((StrategySpec("p", "prune", {}), StrategySpec("c", "cluster", {}),
                            StrategySpec("q", "qat", {})), "saved_model") is None
     assert t.probe() is None and "tensorflow-model-optimization" in t.versions()
+
+
+def _keras_source(model: Any, path: Path, inputs: tuple[TensorSpec, ...]) -> SourceModel:
+    model.save(path)
+    return SourceModel(path.stem, "tensorflow", "keras", path, _sha(path), inputs)
+
+
+def _classifier(last: str = "logits") -> Any:
+    """16x16x3 images -> 3 classes: logits, or probabilities from a softmax activation, layer or
+    Activation."""
+    k = keras()
+    k.utils.set_random_seed(0)
+    head = {"logits": [k.layers.Dense(3)], "dense_softmax": [k.layers.Dense(3, activation="softmax")],
+            "softmax_layer": [k.layers.Dense(3), k.layers.Softmax()],
+            "activation": [k.layers.Dense(3), k.layers.Activation("softmax")]}[last]
+    return k.Sequential([k.layers.Input(tiny_keras.INPUT_SHAPE),
+                         k.layers.Conv2D(8, 3, strides=2, activation="relu"), k.layers.Flatten(),
+                         k.layers.Dense(16, activation="relu"), *head])
+
+
+def _class_images(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """NHWC noise images whose brightest channel is their class (int64 ids 0..2)."""
+    rng = np.random.default_rng(seed)
+    y = rng.integers(0, 3, n)
+    x = rng.random((n, *tiny_keras.INPUT_SHAPE)).astype(np.float32) * 0.6
+    x[np.arange(n), ..., y] += 0.4
+    return x, y.astype(np.int64)
+
+
+def _entropy_and_accuracy(model: Any, x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    logits = model.predict(x, verbose=0)
+    shifted = logits - logits.max(axis=1, keepdims=True)
+    log_p = shifted - np.log(np.exp(shifted).sum(axis=1, keepdims=True))
+    return float(-log_p[np.arange(len(y)), y].mean()), float((logits.argmax(axis=1) == y).mean())
+
+
+def test_classifier_is_pruned_on_cross_entropy(tmp_path: Path) -> None:
+    source = _keras_source(_classifier(), tmp_path / "classifier.keras", IMAGE)
+    held_out = _class_images(128, 1)
+    before, chance = _entropy_and_accuracy(source.load(), *held_out)
+    result = _run(source, _class_images(256, 0), tmp_path / "out",
+                  ("prune", {"final_sparsity": 0.5, "schedule": "constant", "epochs": 3, "lr": 1e-2}),
+                  task="classification")
+    after, accuracy = _entropy_and_accuracy(_load(tmp_path / "out", result), *held_out)
+    assert result.facts["loss"] == "cross_entropy" and result.facts["sparsity"] >= 0.5 - 0.01
+    assert after < 0.5 * before and accuracy >= 0.9 > chance + 0.3, (before, after, chance, accuracy)
+
+
+@pytest.mark.parametrize(("last", "from_logits"), [("logits", True), ("dense_softmax", False),
+                                                   ("softmax_layer", False), ("activation", False)])
+def test_cross_entropy_is_on_logits_unless_the_model_ends_in_softmax(last: str, from_logits: bool) -> None:
+    from bench_matrix.strategies.keras_fit import _objective, training_data
+
+    model = _classifier(last)
+    x, y = _class_images(4, 0)
+    data = training_data({"image": x}, y, IMAGE, "classification", model)
+    loss, _, targets = _objective(model, data)
+    assert loss.get_config()["from_logits"] is from_logits and targets.dtype == np.int64
+
+
+TWO_INPUTS = (TensorSpec("features", (tiny_keras.FEATURES,)),
+              TensorSpec("ids", (tiny_keras.TOKENS,), "int64"))
+
+
+@pytest.fixture(scope="module")
+def two_io(tmp_path_factory: pytest.TempPathFactory) -> tuple[SourceModel, dict[str, np.ndarray], np.ndarray]:
+    """The two-input, two-output model, and labels: zeta's column, then alpha's two, from both inputs."""
+    source = _keras_source(tiny_keras.two_inputs_two_outputs(), tmp_path_factory.mktemp("two") / "two.keras",
+                           TWO_INPUTS)
+    inputs = tiny_keras.token_data(256, 0)
+    features, ids = inputs["features"], inputs["ids"]
+    y = np.concatenate([features[:, :1], np.maximum(features[:, 1:3], 0) + ids[:, :2] / 10], axis=1)
+    return source, {"ids": ids, "features": features}, y.astype(np.float32)  # the data in another order
+
+
+def _two_io_mse(model: Any, inputs: dict[str, np.ndarray], y: np.ndarray) -> float:
+    zeta, alpha = model.predict([inputs["features"], inputs["ids"]], verbose=0)
+    return float(np.mean((np.concatenate([zeta, alpha], axis=1) - y) ** 2))
+
+
+def test_two_input_two_output_model_is_pruned_on_every_output(two_io: Any, tmp_path: Path) -> None:
+    source, inputs, y = two_io
+    result = _run(source, (inputs, y), tmp_path, ("prune", {"final_sparsity": 0.5, "schedule": "constant",
+                                                            "epochs": 10, "lr": 1e-2}))
+    model = _load(tmp_path, result)
+    assert result.facts["loss"] == "mse" and result.facts["sparsity"] == pytest.approx(0.5, abs=0.01)
+    # the MSE over both outputs' columns falls from the random model's (about 1.7) to a tenth of it
+    assert _two_io_mse(model, inputs, y) < 0.1 * _two_io_mse(source.load(), inputs, y)
+    assert result.facts["final_loss"] == pytest.approx(_two_io_mse(model, inputs, y), rel=0.5)
+
+
+def test_two_input_qat_keeps_the_model_close(two_io: Any, tmp_path: Path) -> None:
+    source, inputs, y = two_io
+    result = _run(source, (inputs, y), tmp_path, ("qat", {"epochs": 1, "lr": 1e-9}))
+    assert result.facts["qat"]["float_layers"] == ["embedding (Embedding)"]
+    model = _load(tmp_path, result)
+    assert _two_io_mse(model, inputs, y) == pytest.approx(_two_io_mse(source.load(), inputs, y), rel=0.1)
+
+
+def test_qat_ranges_of_each_float_input_start_from_its_data() -> None:
+    """The second of two inputs feeds a Dense directly: its QuantizeLayer starts at that input's range."""
+    from bench_matrix.sources.keras_qat import tfmot_module
+    from bench_matrix.strategies.keras_fit import training_data
+    from bench_matrix.strategies.tfmot_ranges import init_activation_ranges, observed_ranges
+
+    k = keras()
+    ids = k.layers.Input((tiny_keras.TOKENS,), dtype="int64", name="ids")
+    features = k.layers.Input((tiny_keras.FEATURES,), name="features")
+    embedded = k.layers.GlobalAveragePooling1D()(k.layers.Embedding(tiny_keras.VOCABULARY, 4)(ids))
+    model = k.Model([ids, features], k.layers.Add()([k.layers.Dense(4)(features), embedded]))
+    qk = tfmot_module().quantization.keras
+    annotated = k.models.clone_model(
+        model, clone_function=lambda layer: qk.quantize_annotate_layer(layer) if isinstance(
+            layer, k.layers.Dense) else layer)
+    quantized = qk.quantize_apply(annotated)
+    data = tiny_keras.token_data(64, 1)
+    data["features"] *= 0.5
+    specs = tuple(reversed(TWO_INPUTS))
+    set_ranges = init_activation_ranges(quantized, observed_ranges(
+        model, training_data(data, np.zeros((64, 4), np.float32), specs, "regression", model)))
+    layer = next(layer for layer in quantized.layers if type(layer).__name__ == "QuantizeLayer")
+    ranges = {v.name.split("/")[-1].split(":")[0][-3:]: float(v.numpy()) for v in layer.weights
+              if v.name.endswith(("_min:0", "_max:0"))}
+    assert ranges == {"min": pytest.approx(float(data["features"].min())),
+                      "max": pytest.approx(float(data["features"].max()))}
+    assert f"{layer.name}/{layer.name}_min" in set_ranges
+
+
+def test_steps_reason_refuses_a_task_without_labels() -> None:
+    trainer, prune = TfmotTrainer(), (StrategySpec("p", "prune", {}),)
+    assert trainer.steps_reason(prune, "keras", "none") == "fine-tuning needs labels; the task is none"
+    assert trainer.steps_reason(prune, "keras", "classification") is None

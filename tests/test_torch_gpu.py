@@ -19,14 +19,14 @@ TESTS = Path(__file__).resolve().parent
 sys.path.insert(0, str(TESTS))
 
 import tiny_models  # noqa: E402
-from convert_helper import convert_with  # noqa: E402
+from convert_helper import convert_with, request_for  # noqa: E402
 from test_backends import CALIBRATION, X  # noqa: E402
 
 import torch  # noqa: E402
 
 from bench_matrix import hardware  # noqa: E402
 from bench_matrix.backends import registry  # noqa: E402
-from bench_matrix.backends.base import Backend, ConvertRequest  # noqa: E402
+from bench_matrix.backends.base import Backend  # noqa: E402
 from bench_matrix.matrix.spec import StrategySpec  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
 from bench_matrix_backends import torch_tensorrt as trt_backend  # noqa: E402
@@ -197,11 +197,11 @@ def test_place_converts_to_the_precision_dtype(precision: str, dtype: torch.dtyp
 
 def test_bf16_session_casts_inputs_and_returns_float32(source: SourceModel, reference: np.ndarray) -> None:
     session = TorchSession(place(source.load(), "cpu", "bf16"), "cpu", "bf16")
-    prepared = session.prepare(X.astype(np.float64))
+    (prepared,) = session.prepare({"input": X.astype(np.float64)})
     assert prepared.dtype == torch.bfloat16 and prepared.device.type == "cpu"
-    out = session.execute(prepared)
+    out = session.execute((prepared,))
     assert out.dtype == torch.bfloat16
-    got = session.fetch(out)
+    (got,) = session.fetch(out)
     assert got.dtype == np.float32 and got.shape == reference.shape
     np.testing.assert_allclose(got, reference, rtol=0, atol=_atol("bf16", reference))
     assert np.abs(got - reference).max() > 1e-4  # it did compute in bf16, not in fp32
@@ -214,7 +214,7 @@ def test_backends_carry_bf16_through_convert_and_load(name: str, source: SourceM
     session = BACKENDS[name].load(tmp_path, meta, "cpu", "bf16", 1)
     if name == "torchscript":
         assert {p.dtype for p in torch.jit.load(str(tmp_path / meta["file"])).parameters()} == {torch.bfloat16}
-    got = session.predict(X)
+    (got,) = session.predict({"input": X})
     np.testing.assert_allclose(got, reference, rtol=0, atol=_atol("bf16", reference))
     assert np.abs(got - reference).max() > 1e-4
 
@@ -245,7 +245,7 @@ def test_export_covers_batches_one_to_max_batch(fmt: str, source: SourceModel, r
         torch.export.save(torch.export.export(module, (torch.from_numpy(X[:4]),),
                                               dynamic_shapes=({0: torch.export.Dim("batch")},)), str(path))
         module = SourceModel(**{**source.__dict__, "format": fmt, "path": path, "factory": None}).load()
-    program, example = trt_backend.export(module, tiny_models.INPUT_SHAPE, 8, "cpu", torch.float32, 0)
+    program, (example,) = trt_backend.export(module, source.inputs, 8, "cpu", torch.float32, 0)
     assert example.shape == (2, *tiny_models.INPUT_SHAPE)
     with torch.inference_mode():
         for batch in (1, 8):
@@ -256,7 +256,7 @@ def test_export_covers_batches_one_to_max_batch(fmt: str, source: SourceModel, r
 
 
 def test_export_for_a_single_batch_is_static(source: SourceModel, reference: np.ndarray) -> None:
-    program, example = trt_backend.export(source.load(), tiny_models.INPUT_SHAPE, 1, "cpu", torch.float32, 0)
+    program, (example,) = trt_backend.export(source.load(), source.inputs, 1, "cpu", torch.float32, 0)
     assert example.shape[0] == 1
     with torch.inference_mode():
         np.testing.assert_allclose(program.module()(torch.from_numpy(X[:1])).numpy(), reference[:1], atol=1e-5)
@@ -314,10 +314,10 @@ def test_cuda_precision_matches_fp32(name: str, precision: str, source: SourceMo
     backend = BACKENDS[name]
     meta = convert_with(CALIBRATION, backend, source, tmp_path, "none", precision, "cuda")
     session = backend.load(tmp_path, meta, "cuda", precision, 1)
-    prepared = session.prepare(X)
-    assert prepared.device.type == "cuda" and prepared.dtype == getattr(torch, {"fp32": "float32", "fp16": "float16",
-                                                                               "bf16": "bfloat16"}[precision])
-    got = session.fetch(session.execute(prepared))
+    prepared = session.prepare({"input": X})
+    assert prepared[0].device.type == "cuda" and prepared[0].dtype == getattr(
+        torch, {"fp32": "float32", "fp16": "float16", "bf16": "bfloat16"}[precision])
+    (got,) = session.fetch(session.execute(prepared))
     assert got.dtype == np.float32
     np.testing.assert_allclose(got, reference, rtol=0, atol=_atol(precision, reference))
     assert session.info()["device"] == "cuda"
@@ -328,13 +328,30 @@ def test_cuda_precision_matches_fp32(name: str, precision: str, source: SourceMo
 def test_torch_tensorrt_matches_fp32(name: str, precision: str, source: SourceModel, reference: np.ndarray,
                                      tmp_path: Path) -> None:
     backend, kind = BACKENDS[name], "ptq_static" if precision == "int8" else "none"
-    request = ConvertRequest(source=source, strategy=StrategySpec(kind, kind), precision=precision, target="tensorrt",
-                             out_dir=tmp_path, calibration=lambda n: CALIBRATION[:n], threads=1, seed=0, max_batch=8)
-    meta = backend.convert(request)
+    meta = backend.convert(request_for(CALIBRATION, source, tmp_path, kind, precision, "tensorrt", max_batch=8))
     assert [p.name for p in tmp_path.iterdir()] == [trt_backend.FILE]  # the engines are inside model.ep
     assert meta["engines"] >= 1 and meta["profile"] == {"min": 1, "opt": 1, "max": 8}
     session = trt_backend.TorchTensorRTBackend().load(tmp_path, meta, "tensorrt", precision, 1)
     atol = _atol(precision, reference) if precision != "fp32" else 1e-3 * float(np.abs(reference).max())
     for batch in (1, 8):  # both ends of the engine's profile
-        np.testing.assert_allclose(session.predict(X[:batch]), reference[:batch], rtol=0, atol=atol)
+        np.testing.assert_allclose(session.predict({"input": X[:batch]})[0], reference[:batch], rtol=0, atol=atol)
     assert session.info()["engines"] == meta["engines"]
+
+
+def test_export_gives_every_input_the_same_dynamic_batch(tmp_path: Path) -> None:
+    """Torch-TensorRT's export of a two-input model (float features, int64 ids): one batch dimension for both,
+    the ids kept int64 while the features take the precision's dtype."""
+    from bench_matrix.tensors import TensorSpec
+
+    inputs = (TensorSpec("features", (tiny_models.FEATURES,)), TensorSpec("ids", (tiny_models.TOKENS,), "int64"))
+    program, example = trt_backend.export(tiny_models.two_inputs(), inputs, 8, "cpu", torch.float32, 0)
+    assert [t.dtype for t in example] == [torch.float32, torch.int64] and [len(t) for t in example] == [2, 2]
+    data = tiny_models.token_data(8, 0)
+    with torch.inference_mode():
+        got = program.module()(*(torch.from_numpy(a) for a in data.values()))
+        expected = tiny_models.two_inputs()(*(torch.from_numpy(a) for a in data.values()))
+    np.testing.assert_allclose(got.numpy(), expected.numpy(), rtol=0, atol=1e-6)
+    free = SourceModel(name="m", framework="pytorch", format="state_dict", path=tmp_path / "m.pt", sha256="",
+                       inputs=(TensorSpec("ids", (None,), "int64"),))
+    assert "builds engines for fixed sample shapes, but input ids (?) int64 has a free axis" in (
+        trt_backend.free_axes_reason(free) or "")

@@ -1,11 +1,11 @@
-"""The torch trainer with real torch on the tiny model: L1 pruning (local, global, polynomial), FX QAT, both."""
+"""The torch trainer with real torch on the tiny model: L1 pruning (local, global, polynomial), FX QAT, both;
+a classifier fine-tuned on cross-entropy, and a model with two inputs (float features and int64 ids)."""
 
 from __future__ import annotations
 
-import math
-
 import copy
 import hashlib
+import math
 import sys
 from pathlib import Path
 
@@ -18,22 +18,29 @@ from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.sources import SourceModel
 from bench_matrix.strategies.base import FineTuned, FineTuneRequest
 from bench_matrix.strategies.torch_trainer import TorchTrainer
+from bench_matrix.tensors import TensorSpec, take
 
 TESTS = Path(__file__).resolve().parent
 sys.path.insert(0, str(TESTS))
+import task_models
 import tiny_models
 
 N = 128
+IMAGE = (TensorSpec("image", tiny_models.INPUT_SHAPE),)
+FEATURES_AND_IDS = (TensorSpec("features", (task_models.FEATURES,)),
+                    TensorSpec("ids", (task_models.TOKENS,), "int64", (0, task_models.VOCAB)))
 
 
-def make_source(path: Path, state: dict | None = None, seed: int = 0) -> SourceModel:
+def make_source(path: Path, state: dict | None = None, seed: int = 0, factory: str = "tiny_models:tiny",
+                inputs: tuple[TensorSpec, ...] = IMAGE) -> SourceModel:
     if state is None:
         torch.manual_seed(seed)
-        state = tiny_models.tiny().state_dict()
+        module, name = factory.split(":")
+        state = getattr(sys.modules[module], name)().state_dict()
     torch.save(state, path)
     return SourceModel(name="tiny", framework="pytorch", format="state_dict", path=path,
-                       sha256=hashlib.sha256(path.read_bytes()).hexdigest(), input_shape=tiny_models.INPUT_SHAPE,
-                       factory="tiny_models:tiny", python_path=(str(TESTS),))
+                       sha256=hashlib.sha256(path.read_bytes()).hexdigest(), inputs=inputs,
+                       factory=factory, python_path=(str(TESTS),))
 
 
 def data(n: int = N, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -43,16 +50,21 @@ def data(n: int = N, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return x, y
 
 
-def finetune(source: SourceModel, out: Path, *steps: StrategySpec, x: np.ndarray | None = None,
-             y: np.ndarray | None = None) -> FineTuned:
+def finetune(source: SourceModel, out: Path, *steps: StrategySpec, x: np.ndarray | dict | None = None,
+             y: np.ndarray | None = None, task: str = "regression") -> FineTuned:
     if x is None:
         x, y = data()
+    inputs = x if isinstance(x, dict) else {"image": x}
     out.mkdir(parents=True, exist_ok=True)
     trainer = TorchTrainer()
-    assert trainer.steps_reason(steps, source.format) is None
-    request = FineTuneRequest(source=source, steps=steps, out_dir=out,
-                              train=lambda fraction: (x[:round(len(x) * fraction)], y[:round(len(x) * fraction)]),
-                              threads=2, seed=0)
+    assert trainer.steps_reason(steps, source.format, task) is None
+
+    def train(fraction: float) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        rows = slice(0, round(len(y) * fraction))
+        return take(inputs, rows), y[rows]
+
+    request = FineTuneRequest(source=source, steps=steps, out_dir=out, train=train, threads=2, seed=0,
+                              task=task)
     result = trainer.finetune(request)
     assert sorted(p.name for p in out.iterdir()) == [result.file]  # writes its one file, there only
     return result
@@ -183,7 +195,7 @@ def test_qat_beats_post_training_static_quantisation(tmp_path):
     the weights through fake quantisation to compensate; PTQ cannot. Measured across seeds 0-2 QAT's held-out
     MSE was 0.4-0.6x that of per-channel PTQ; everything is seeded, so the assertion is deterministic.
     """
-    from bench_matrix_backends._torch import quiet_torch, use_engine
+    from bench_matrix.sources.pytorch import quiet_torch, use_engine
     from torch.ao import quantization as tq
     from torch.ao.quantization.quantize_fx import convert_fx, prepare_fx
 
@@ -262,3 +274,93 @@ def test_steps_reason_accepts_the_supported_shapes():
     assert trainer.steps_reason((combo,), "state_dict") is None
     assert trainer.steps_reason((StrategySpec("p", "prune", {"schedule": "polynomial"}),), "state_dict") is None
     assert "torch" in trainer.versions() and trainer.probe() is None
+
+
+def class_images(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """3x16x16 noise images whose brightest channel is their class (int64 ids 0..2)."""
+    rng = np.random.default_rng(seed)
+    y = rng.integers(0, task_models.CLASSES, n)
+    x = rng.random((n, 3, 16, 16)).astype(np.float32) * 0.6
+    x[np.arange(n), y] += 0.4
+    return x, y.astype(np.int64)
+
+
+def cross_entropy_and_accuracy(module: torch.nn.Module, x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    with torch.no_grad():
+        logits = module.eval()(torch.from_numpy(x))
+        entropy = float(torch.nn.functional.cross_entropy(logits, torch.from_numpy(y)))
+    return entropy, float((logits.argmax(dim=1).numpy() == y).mean())
+
+
+def test_classifier_is_pruned_on_cross_entropy_of_its_logits(tmp_path):
+    source = make_source(tmp_path / "classifier.pt", factory="task_models:classifier")
+    x, y = class_images(256, seed=0)
+    held_out = class_images(128, seed=1)
+    before, chance = cross_entropy_and_accuracy(source.load(), *held_out)
+    result = finetune(source, tmp_path / "out", prune(epochs=3, lr=1e-2), x={"image": x}, y=y,
+                      task="classification")
+    module = task_models.classifier()
+    module.load_state_dict(torch.load(tmp_path / "out" / result.file, weights_only=True))
+    after, accuracy = cross_entropy_and_accuracy(module, *held_out)
+    assert result.facts["loss"] == "cross_entropy" and result.facts["steps"][0]["loss"] == "cross_entropy"
+    # trained on the class ids through the pruning: held-out cross-entropy falls, accuracy far above chance
+    assert after < 0.5 * before and accuracy >= 0.9 > chance + 0.3, (before, after, chance, accuracy)
+    assert result.facts["final_loss"] < before
+    for kind, zeros, n in layer_zeros(module):
+        assert zeros == math.ceil((0.3 if kind == "Conv2d" else 0.5) * n)
+
+
+def two_input_data(n: int, seed: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Features and token ids, and a (4,) target the two-input model can learn: a function of both inputs."""
+    rng = np.random.default_rng(seed)
+    features = rng.standard_normal((n, task_models.FEATURES)).astype(np.float32)
+    ids = rng.integers(0, task_models.VOCAB, (n, task_models.TOKENS)).astype(np.int64)
+    y = np.maximum(features[:, :4], 0) + (ids.mean(axis=1, keepdims=True) / task_models.VOCAB)
+    return {"features": features, "ids": ids}, y.astype(np.float32)
+
+
+def test_two_input_model_is_pruned_with_both_inputs(tmp_path):
+    source = make_source(tmp_path / "two.pt", factory="task_models:two_input", inputs=FEATURES_AND_IDS)
+    inputs, y = two_input_data(256, seed=0)
+    # the data's arrays in another order than the model's: the trainer calls it in the model's input order
+    shuffled = {"ids": inputs["ids"], "features": inputs["features"]}
+
+    def mse(module: torch.nn.Module) -> float:
+        with torch.no_grad():
+            out = module.eval()(torch.from_numpy(inputs["features"]), torch.from_numpy(inputs["ids"]))
+        return float(((out.numpy() - y) ** 2).mean())
+
+    result = finetune(source, tmp_path / "out", prune(epochs=10, lr=1e-2, linear_sparsity=0.25), x=shuffled,
+                      y=y)
+    module = task_models.two_input()
+    module.load_state_dict(torch.load(tmp_path / "out" / result.file, weights_only=True))
+    assert int((module.dense.weight == 0).sum()) == math.ceil(0.25 * module.dense.weight.numel())
+    assert int((module.embed.weight == 0).sum()) == 0  # an embedding is not a Conv/Linear kernel: not pruned
+    assert result.facts["loss"] == "mse" and mse(module) < 0.5 * mse(source.load()), result.facts
+
+
+def test_training_data_must_hold_every_input(tmp_path):
+    source = make_source(tmp_path / "two.pt", factory="task_models:two_input", inputs=FEATURES_AND_IDS)
+    inputs, y = two_input_data(16, seed=0)
+    with pytest.raises(ValueError, match=r"no input ids \(it has features\)"):
+        finetune(source, tmp_path / "out", prune(), x={"features": inputs["features"]}, y=y)
+
+
+def test_steps_reason_refuses_a_task_without_labels():
+    trainer = TorchTrainer()
+    refused = trainer.steps_reason((prune(),), "state_dict", "none")
+    assert refused == "fine-tuning needs labels; the task is none"
+    assert trainer.steps_reason((prune(),), "state_dict", "classification") is None
+
+
+def test_two_input_qat_quantises_the_linear_layer_and_the_embedding(tmp_path):
+    source = make_source(tmp_path / "two.pt", factory="task_models:two_input", inputs=FEATURES_AND_IDS)
+    inputs, y = two_input_data(64, seed=0)
+    result = finetune(source, tmp_path / "out", qat(), x=inputs, y=y)
+    int8 = torch.jit.load(str(tmp_path / "out" / result.file))
+    graph = str(int8.graph)
+    assert "quantized::linear" in graph and "quantized::embedding_byte" in graph
+    features, ids = torch.from_numpy(inputs["features"]), torch.from_numpy(inputs["ids"])
+    with torch.no_grad():
+        got, expected = int8(features, ids).numpy(), source.load().eval()(features, ids).numpy()
+    assert np.isfinite(got).all() and np.corrcoef(got.ravel(), expected.ravel())[0, 1] > 0.95

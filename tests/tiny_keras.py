@@ -45,3 +45,27 @@ def save_trained(path: Path, seed: int = 0, epochs: int = 30) -> Path:
     model.fit(x, colour_balance(x), epochs=epochs, batch_size=32, verbose=0)
     model.save(path)
     return path
+
+
+FEATURES, TOKENS, VOCABULARY = 6, 5, 10  # the two-input model's float features and int64 token ids per sample
+
+
+def two_inputs_two_outputs() -> Any:
+    """features float (6,) and ids int64 (5,) -> [zeta (1,), alpha (2,)]: a list whose names are not in sorted
+    order (TFLite's signature sorts them), from the ids' mean embedding beside the features."""
+    from bench_matrix.sources.tensorflow import keras
+
+    k = keras()
+    k.utils.set_random_seed(0)
+    features = k.layers.Input((FEATURES,), name="features")
+    ids = k.layers.Input((TOKENS,), dtype="int64", name="ids")
+    embedded = k.layers.GlobalAveragePooling1D()(k.layers.Embedding(VOCABULARY, 4)(ids))
+    hidden = k.layers.Dense(16, activation="relu")(k.layers.Concatenate()([features, embedded]))
+    return k.Model([features, ids], [k.layers.Dense(1, name="zeta")(hidden), k.layers.Dense(2, name="alpha")(hidden)])
+
+
+def token_data(n: int, seed: int) -> dict[str, np.ndarray]:
+    """Inputs of `two_inputs_two_outputs`: standard-normal features and token ids in [0, VOCABULARY)."""
+    rng = np.random.default_rng(seed)
+    return {"features": rng.standard_normal((n, FEATURES)).astype(np.float32),
+            "ids": rng.integers(0, VOCABULARY, (n, TOKENS)).astype(np.int64)}

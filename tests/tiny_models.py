@@ -54,3 +54,68 @@ def fitted() -> "nn.Module":
         torch.nn.functional.mse_loss(model(x[batch]), y[batch]).backward()
         optimiser.step()
     return model.eval()
+
+
+FEATURES, TOKENS, VOCABULARY = 6, 5, 10  # the two-input models' float features and int64 token ids per sample
+
+
+def two_inputs() -> "nn.Module":
+    """forward(features float (6,), ids int64 (5,)): the ids' mean embedding beside the features, a dense head -> 2."""
+    import torch
+    from torch import nn
+
+    class TwoInputs(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.embedding = nn.Embedding(VOCABULARY, 4)
+            self.head = nn.Sequential(nn.Linear(FEATURES + 4, 16), nn.ReLU(), nn.Linear(16, 2))
+
+        def forward(self, features: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
+            return self.head(torch.cat([features, self.embedding(ids).mean(dim=1)], dim=1))
+
+    torch.manual_seed(0)
+    return TwoInputs().eval()
+
+
+def two_outputs() -> "nn.Module":
+    """`tiny`'s trunk with two heads, returned as a dict whose keys are not in sorted order: {"speed": (N, 1),
+    "angle": (N, 2)}."""
+    import torch
+    from torch import nn
+
+    class TwoOutputs(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.trunk = tiny()[:-1]
+            self.speed = nn.Linear(16, 1)
+            self.angle = nn.Linear(16, 2)
+
+        def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
+            hidden = self.trunk(image)
+            return {"speed": self.speed(hidden), "angle": self.angle(hidden)}
+
+    torch.manual_seed(0)
+    return TwoOutputs().eval()
+
+
+def fitted_two_outputs() -> "nn.Module":
+    """`two_outputs` with `fitted`'s trunk and head (as angle), and speed the sum of the two angles, so that both
+    outputs follow the input."""
+    import torch
+
+    module, trained = two_outputs(), fitted()
+    module.trunk.load_state_dict(trained[:-1].state_dict())
+    module.angle.load_state_dict(trained[-1].state_dict())
+    with torch.no_grad():
+        module.speed.weight.copy_(trained[-1].weight.sum(dim=0, keepdim=True))
+        module.speed.bias.copy_(trained[-1].bias.sum(dim=0, keepdim=True))
+    return module
+
+
+def token_data(n: int, seed: int) -> dict[str, "np.ndarray"]:
+    """Inputs of `two_inputs`: standard-normal features and token ids in [0, VOCABULARY)."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    return {"features": rng.standard_normal((n, FEATURES)).astype(np.float32),
+            "ids": rng.integers(0, VOCABULARY, (n, TOKENS)).astype(np.int64)}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -12,6 +12,7 @@ import numpy as np
 
 from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.sources import SourceModel
+from bench_matrix.tensors import Inputs
 
 
 @dataclass(frozen=True)
@@ -32,12 +33,14 @@ class Support:
 class ConvertRequest:
     """Everything a backend needs to turn the pristine source model into an artifact."""
 
-    source: SourceModel
-    strategy: StrategySpec
+    source: SourceModel  # source.inputs: the model's named inputs (shape per sample, dtype)
+    # What the backend is asked to do, resolved once by the planner: a conversion kind (none, ptq_dynamic,
+    # ptq_static) or, for a quantisation-aware-trained source with no conversion step, its QAT kind; with its options.
+    step: StrategySpec
     precision: str
     target: str
     out_dir: Path  # write every file of the artifact here, and nothing else
-    calibration: Callable[[int], np.ndarray]  # n -> first n preprocessed calibration samples
+    calibration: Callable[[int], Inputs]  # n -> the first n preprocessed calibration samples of every input
     threads: int
     seed: int
     # Files derived from this source alone (e.g. its fp32 export), reusable by every conversion of it with this
@@ -45,28 +48,35 @@ class ConvertRequest:
     shared_dir: Path | None = None
     # The largest batch the cell runs (latency runs batch 1): ahead-of-time engines (TensorRT) cover 1..max_batch.
     max_batch: int = 1
+    # This backend's own options from the matrix (`backend_options`), validated against Backend.options;
+    # whatever `load` needs of them goes into the returned metadata.
+    options: dict[str, Any] = field(default_factory=dict)
 
 
 class Session(ABC):
     """A loaded artifact ready to run; `execute` returns only once the work is finished."""
 
-    def prepare(self, x: np.ndarray) -> Any:
-        """Put a batch where the runtime reads it (device memory, a feed dict); not timed."""
-        return x
+    def prepare(self, inputs: Inputs) -> Any:
+        """Put a batch (one array per named input) where the runtime reads it (device memory, a feed dict);
+        not timed."""
+        return inputs
 
     @abstractmethod
     def execute(self, prepared: Any) -> Any:
         """Run one batch and wait for completion (synchronise devices); this call is what is timed."""
 
-    def fetch(self, outputs: Any) -> np.ndarray:
-        """Outputs as a float32 host array (int8 outputs dequantised with their scale and zero point)."""
-        return np.asarray(outputs, dtype=np.float32)
+    def fetch(self, outputs: Any) -> list[np.ndarray]:
+        """Every output of the model, in order, as float32 host arrays with the batch axis first (int8 outputs
+        dequantised with their scale and zero point)."""
+        if isinstance(outputs, (list, tuple)):
+            return [np.asarray(o, dtype=np.float32) for o in outputs]
+        return [np.asarray(outputs, dtype=np.float32)]
 
-    def predict(self, x: np.ndarray) -> np.ndarray:
-        return self.fetch(self.execute(self.prepare(x)))
+    def predict(self, inputs: Inputs) -> list[np.ndarray]:
+        return self.fetch(self.execute(self.prepare(inputs)))
 
     def info(self) -> dict[str, Any]:
-        """Facts about the session worth recording (providers actually used, device)."""
+        """Facts about the session worth recording (providers actually used, device, threads)."""
         return {}
 
 
@@ -77,6 +87,10 @@ class Backend(ABC):
     description: ClassVar[str]
     supports: ClassVar[tuple[Support, ...]]
     baseline_for: ClassVar[tuple[str, ...]] = ()  # frameworks whose fp32 reference this backend computes
+    # The backend's own options under `backend_options: {name: {...}}` in a matrix, as JSON Schema properties
+    # (validated with the matrix; defaults are the backend's to apply). Targets and precisions beyond the
+    # built-in ones are declared simply by naming them in `supports`.
+    options: ClassVar[dict[str, Any]] = {}
 
     def versions(self) -> dict[str, str]:
         """Versions of the libraries this backend uses (in the artifact cache key and in each record's `env`)."""
@@ -100,7 +114,8 @@ class Backend(ABC):
         return f"{self.name} does not implement {strategy} at {precision} on {target}"
 
     def option_reason(self, step: StrategySpec, source_format: str) -> str | None:
-        """Why this backend cannot apply `step` with its options to a source of `source_format`, or None."""
+        """Why this backend cannot apply `step` (the resolved conversion step) with its options to a source of
+        `source_format`, or None; called once per combination, at plan time."""
         return None
 
     @abstractmethod

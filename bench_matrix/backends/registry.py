@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib.metadata import EntryPoint, entry_points
+from typing import Any
 
 from bench_matrix.backends.base import Backend
 
@@ -31,8 +32,57 @@ def available() -> dict[str, BackendEntry]:
     return found
 
 
-def load_backend(name: str) -> Backend:
-    """Import and instantiate one registered backend."""
+@dataclass(frozen=True)
+class Vocabulary:
+    """What the installed backends declare: each target and precision with the backends naming it, each
+    backend's own options (JSON Schema properties), and the backends that cannot be loaded, with why."""
+
+    targets: dict[str, list[str]]
+    precisions: dict[str, list[str]]
+    options: dict[str, dict[str, Any]]
+    broken: dict[str, str] = field(default_factory=dict)
+
+
+def vocabulary() -> Vocabulary:
+    """What every installed backend class declares (imported, not instantiated; a broken one is absent)."""
+    targets: dict[str, list[str]] = {}
+    precisions: dict[str, list[str]] = {}
+    options: dict[str, dict[str, Any]] = {}
+    broken: dict[str, str] = {}
+    for name in available():
+        try:
+            cls = backend_class(name)
+            declared = {"targets": {t for s in cls.supports for t in s.targets},
+                        "precisions": {p for s in cls.supports for p in s.precisions}}
+            problem = _options_problem(cls.options)
+        except Exception as exc:  # a broken plugin must not take the tool down
+            broken[name] = str(exc) if isinstance(exc, BackendLoadError) else f"{type(exc).__name__}: {exc}"
+            continue
+        if problem:
+            broken[name] = f"its options are not a valid JSON Schema: {problem}"
+            continue
+        for found, values in ((targets, declared["targets"]), (precisions, declared["precisions"])):
+            for value in sorted(values):
+                found.setdefault(value, []).append(name)
+        options[name] = dict(cls.options)
+    return Vocabulary(targets, precisions, options, broken)
+
+
+def _options_problem(options: Any) -> str | None:
+    """Why a backend's `options` declaration is not a mapping of JSON Schemas, or None."""
+    import jsonschema
+
+    if not isinstance(options, dict):
+        return f"expected a mapping of option name to schema, got {type(options).__name__}"
+    try:
+        jsonschema.Draft202012Validator.check_schema({"type": "object", "properties": options})
+    except jsonschema.SchemaError as exc:
+        return exc.message
+    return None
+
+
+def backend_class(name: str) -> type[Backend]:
+    """Import one registered backend's class."""
     eps = [ep for ep in entry_points(group=ENTRY_POINT_GROUP) if ep.name == name]
     if not eps:
         raise BackendLoadError(f"no backend named {name!r} is installed (installed: {', '.join(available())})")
@@ -43,10 +93,17 @@ def load_backend(name: str) -> Backend:
         raise BackendLoadError(f"backend {name!r} ({ep.value}) failed to import: {type(exc).__name__}: {exc}") from exc
     if not (isinstance(cls, type) and issubclass(cls, Backend)):
         raise BackendLoadError(f"backend {name!r} ({ep.value}) is not a bench_matrix Backend subclass")
+    return cls
+
+
+def load_backend(name: str) -> Backend:
+    """Import and instantiate one registered backend."""
+    cls = backend_class(name)
     try:
         backend = cls()
     except Exception as exc:  # e.g. an abstract method left unimplemented
-        raise BackendLoadError(f"backend {name!r} ({ep.value}) cannot be created: {type(exc).__name__}: {exc}") from exc
+        raise BackendLoadError(f"backend {name!r} ({cls.__module__}:{cls.__qualname__}) cannot be created: "
+                               f"{type(exc).__name__}: {exc}") from exc
     if backend.name != name:
         raise BackendLoadError(f"backend registered as {name!r} calls itself {backend.name!r}")
     return backend

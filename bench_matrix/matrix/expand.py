@@ -1,4 +1,5 @@
-"""Expand a matrix into planned cells: axes product, exclude, include, validity and machine probes."""
+"""Expand a matrix into cell plans: axes product, exclude, include, each strategy resolved into its conversion and
+training steps, validity and machine probes."""
 
 from __future__ import annotations
 
@@ -7,16 +8,16 @@ import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-from bench_matrix.cell import Cell, PlannedCell
-from bench_matrix.matrix.schema import STRATEGY_KINDS
+from bench_matrix.cell import Cell, CellPlan
+from bench_matrix.matrix.schema import QAT_KINDS, STRATEGY_KINDS
 from bench_matrix.matrix.spec import Matrix, StrategySpec
 
-# (backend, framework, conversion kind, precision, target, source format, conversion options as JSON):
-# everything a backend needs to judge a combination before any model is loaded
-VerdictKey = tuple[str, str, str, str, str, str, str]
-# (framework, source format, training steps as JSON): what a trainer needs to judge a fine-tuning strategy
-TrainingKey = tuple[str, str, str]
-QAT_KINDS = ("qat", "cqat", "pqat", "pcqat")  # training kinds whose result carries learned int8 ranges
+# (backend, framework, conversion kind, precision, target, source format, conversion options as JSON, training
+# key as JSON or ""): everything a backend needs to judge a combination before any model is loaded (after a
+# fine-tuning, the format converted is the trainer's output, which the probe substitutes)
+VerdictKey = tuple[str, str, str, str, str, str, str, str]
+# (framework, source format, training steps as JSON, task): what a trainer needs to judge a fine-tuning strategy
+TrainingKey = tuple[str, str, str, str]
 
 
 @dataclass(frozen=True)
@@ -26,16 +27,17 @@ class Verdict:
     invalid: str | None = None
     skip: str | None = None
     by: str | None = None  # for a fine-tuning strategy: the trainer that will apply it
+    format: str | None = None  # ... and the format of the model it writes
 
 
 @dataclass(frozen=True)
 class Expansion:
     """Every planned cell plus how many combinations `exclude` removed."""
 
-    cells: tuple[PlannedCell, ...]
+    cells: tuple[CellPlan, ...]
     excluded: int
 
-    def by_state(self, state: str) -> list[PlannedCell]:
+    def by_state(self, state: str) -> list[CellPlan]:
         return [p for p in self.cells if p.state == state]
 
 
@@ -48,10 +50,6 @@ def conversion_step(strategy: StrategySpec) -> StrategySpec:
 
 def _leaves(strategy: StrategySpec) -> list[StrategySpec]:
     return [leaf for step in strategy.steps for leaf in _leaves(step)] if strategy.steps else [strategy]
-
-
-def training_kinds(strategy: StrategySpec) -> list[str]:
-    return [k for k in strategy.kinds() if STRATEGY_KINDS[k]["stage"] == "training"]
 
 
 def training_steps(strategy: StrategySpec) -> tuple[StrategySpec, ...]:
@@ -73,16 +71,19 @@ def backend_kind(strategy: StrategySpec) -> StrategySpec:
 
 def verdict_key(matrix: Matrix, cell: Cell) -> VerdictKey:
     step = backend_kind(matrix.strategies[cell.strategy])
+    training = training_key(matrix, cell)
     return (cell.backend, cell.framework, step.kind or "none", cell.precision, cell.target,
-            matrix.model(cell.model).source_format, json.dumps(step.options, sort_keys=True))
+            matrix.model(cell.model).source_format, json.dumps(step.options, sort_keys=True),
+            json.dumps(training) if training else "")
 
 
 def training_key(matrix: Matrix, cell: Cell) -> TrainingKey | None:
-    """(framework, source format, steps as JSON) when the cell's strategy fine-tunes the model, else None."""
+    """(framework, source format, steps as JSON, task) when the cell's strategy fine-tunes the model, else None."""
     steps = training_steps(matrix.strategies[cell.strategy])
     if not steps:
         return None
-    return (cell.framework, matrix.model(cell.model).source_format, json.dumps([s.to_dict() for s in steps]))
+    model = matrix.model(cell.model)
+    return (cell.framework, model.source_format, json.dumps([s.to_dict() for s in steps]), matrix.task_of(model))
 
 
 def combinations(matrix: Matrix, installed: Iterable[str]) -> tuple[list[Cell], int]:
@@ -108,26 +109,33 @@ def combinations(matrix: Matrix, installed: Iterable[str]) -> tuple[list[Cell], 
 
 
 def plan(matrix: Matrix, cells: list[Cell], excluded: int, verdicts: Mapping[VerdictKey, Verdict],
-         trainers: Mapping[TrainingKey, Verdict] | None = None) -> Expansion:
-    """Judge each candidate: invalid (no trainer, backend does not do it), skip, or run."""
+         trainers: Mapping[TrainingKey, Verdict] | None = None,
+         baselines: Mapping[str, str] | None = None) -> Expansion:
+    """Judge each candidate (invalid: no trainer, backend does not do it; skip; run) and resolve its steps and
+    its baseline cell (`baselines`: framework -> the backend computing its fp32 reference)."""
     planned = []
     for cell in cells:
+        strategy = matrix.strategies[cell.strategy]
         key = training_key(matrix, cell)
         training = (trainers or {}).get(key) if key else None
-        verdict = verdicts[verdict_key(matrix, cell)]
-        if key and training is None:
-            planned.append(PlannedCell(cell, "invalid", f"strategy {cell.strategy} fine-tunes the model; no "
-                                                        f"installed trainer judged it"))
-        elif training and training.invalid:
-            planned.append(PlannedCell(cell, "invalid", training.invalid))
-        elif verdict.invalid:
-            planned.append(PlannedCell(cell, "invalid", verdict.invalid))
-        elif verdict.skip or (training and training.skip):
-            planned.append(PlannedCell(cell, "skip", "; ".join(r for r in (verdict.skip, training and training.skip)
-                                                               if r)))
-        else:
-            planned.append(PlannedCell(cell, "run"))
+        state, reason = _judge(cell, key, training, verdicts[verdict_key(matrix, cell)])
+        backend = (baselines or {}).get(cell.framework)
+        baseline = Cell(cell.model, cell.framework, backend, "none", "fp32", "cpu") if backend else None
+        planned.append(CellPlan(cell, state, reason, step=backend_kind(strategy), training=training_steps(strategy),
+                                trainer=training.by if training else None, baseline=baseline))
     return Expansion(cells=tuple(planned), excluded=excluded)
+
+
+def _judge(cell: Cell, key: TrainingKey | None, training: Verdict | None, verdict: Verdict) -> tuple[str, str | None]:
+    if key and training is None:
+        return "invalid", f"strategy {cell.strategy} fine-tunes the model; no installed trainer judged it"
+    if training and training.invalid:
+        return "invalid", training.invalid
+    if verdict.invalid:
+        return "invalid", verdict.invalid
+    if verdict.skip or (training and training.skip):
+        return "skip", "; ".join(r for r in (verdict.skip, training and training.skip) if r)
+    return "run", None
 
 
 def _included(matrix: Matrix, fixed: dict[str, str], backends: list[str]) -> list[Cell]:

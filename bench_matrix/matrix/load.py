@@ -2,36 +2,46 @@
 
 from __future__ import annotations
 
-import difflib
 import math
 import stat
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jsonschema
 
 from bench_matrix.errors import MatrixError
-from bench_matrix.matrix import paths
-from bench_matrix.matrix.schema import BUILTIN_FRAMEWORKS, BUILTIN_MODELS, CELL_KEYS, FRAMEWORKS, PRECISIONS, SCHEMA, STRATEGY_KINDS, TARGETS
+from bench_matrix.matrix import load_data, paths
+from bench_matrix.matrix.schema import (
+    BUILTIN_FRAMEWORKS,
+    BUILTIN_MODELS,
+    CELL_KEYS,
+    FRAMEWORKS,
+    PRECISIONS,
+    SCHEMA,
+    STRATEGY_KINDS,
+    TARGETS,
+    installed_schema,
+)
 from bench_matrix.matrix.spec import (
     DEFAULT_LAYOUT,
     MODEL_SUFFIXES,
     DatasetSpec,
-    LabelSpec,
     Matrix,
     ModelSpec,
-    Preprocess,
     Selector,
     Settings,
-    SplitSpec,
     StrategySpec,
     TrainingSpec,
     file_kind,
 )
-from bench_matrix.matrix.yamlpos import format_path, load_with_lines
+from bench_matrix.matrix.yamlpos import Located, load_with_lines, suggest
 from bench_matrix.workspace import not_regular
 
-DRIVING_LABELS = LabelSpec(columns=("v", "w"), offset=(6.5, -7.1), scale=(17.5, 14.2))
+if TYPE_CHECKING:
+    from bench_matrix.backends.registry import Vocabulary
+
+__all__ = ["load_matrix", "suggest"]
+PLUGGABLE = {"precision": PRECISIONS, "target": TARGETS}  # axes whose values installed backends may add to
 
 
 def _is_integer(_checker: Any, value: Any) -> bool:
@@ -48,52 +58,58 @@ StrictValidator = jsonschema.validators.extend(
         {"integer": _is_integer, "number": _is_number}))
 
 
-def suggest(word: str, allowed: list[str] | tuple[str, ...]) -> str:
-    """'; did you mean X?' when a close match exists."""
-    close = difflib.get_close_matches(str(word), [str(a) for a in allowed], n=1, cutoff=0.6)
-    return f"; did you mean '{close[0]}'?" if close else ""
-
-
-class _Located:
-    """Collects problems as 'file:line: key: message'."""
-
-    def __init__(self, path: Path, lines: dict[tuple, int]):
-        self.path, self.lines, self.problems = path, lines, []
-
-    def add(self, at: tuple, message: str) -> None:
-        probe = at
-        while probe not in self.lines and probe:
-            probe = probe[:-1]
-        self.problems.append(f"{self.path}:{self.lines.get(probe, 1)}: {format_path(at)}: {message}")
-
-
 def load_matrix(path: str | Path, backends: list[str] | None = None) -> Matrix:
-    """Read and validate a matrix; `backends` (installed names) checks the backend axis too."""
+    """Read and validate a matrix; `backends` (installed names) checks the backend axis too. Targets,
+    precisions and options that installed backends declare are accepted (their classes are imported only
+    for a matrix that names such a value or has backend_options)."""
     path = Path(path)
     data, lines = load_with_lines(path)
-    report = _Located(path, lines)
+    report = Located(path, lines)
     if not isinstance(data, dict):
         raise MatrixError([f"{path}:1: the top level must be a mapping with 'models', 'dataset' and 'axes'"])
-    errors = sorted(StrictValidator(SCHEMA).iter_errors(data), key=lambda e: list(map(str, e.absolute_path)))
+    vocabulary = _vocabulary(data)
+    schema = SCHEMA if vocabulary is None else installed_schema(vocabulary)
+    errors = sorted(StrictValidator(schema).iter_errors(data), key=lambda e: list(map(str, e.absolute_path)))
     mistyped = {tuple(e.absolute_path) for e in errors if e.validator == "type"}
     for error in errors:  # a value of the wrong type gets one message, not also its bounds
         if error.validator == "type" or tuple(error.absolute_path) not in mistyped:
             _describe(error, report)
     if report.problems:
         raise MatrixError(report.problems)
-    matrix = _build(path, data, lines, report, backends)
+    matrix = _build(path, data, lines, report, backends, vocabulary)
     if report.problems:
         raise MatrixError(report.problems)
     return matrix
 
 
-def _describe(error: jsonschema.ValidationError, report: _Located) -> None:
+def _vocabulary(data: dict[str, Any]) -> Vocabulary | None:
+    """The installed backends' vocabulary when the matrix needs it: a precision or target beyond the built-in
+    ones (on the axes, in include or exclude), or backend_options; else None (nothing imported)."""
+    named = [(axis, value) for axis in PLUGGABLE for value in _listed(data.get("axes"), axis)]
+    for section in ("include", "exclude"):
+        entries = data.get(section)
+        for entry in entries if isinstance(entries, list) else ():
+            named += [(key, entry[key]) for key in PLUGGABLE if isinstance(entry, dict) and key in entry]
+    if "backend_options" not in data and all(value in PLUGGABLE[axis] for axis, value in named):
+        return None
+    from bench_matrix.backends.registry import vocabulary
+
+    return vocabulary()
+
+
+def _listed(section: Any, key: str) -> list[Any]:
+    values = section.get(key) if isinstance(section, dict) else None
+    return values if isinstance(values, list) else []
+
+
+def _describe(error: jsonschema.ValidationError, report: Located) -> None:
     at = tuple(error.absolute_path)
     schema, value, kind = error.schema, error.instance, error.validator
     if kind == "additionalProperties" and isinstance(value, dict):
         allowed = sorted(schema.get("properties", {}))
         for key in [k for k in value if k not in schema.get("properties", {})]:
-            hint = f"allowed: {', '.join(allowed)}" if allowed else "no keys are allowed here"
+            none = schema.get("x-message", "no keys are allowed here")
+            hint = f"allowed: {', '.join(allowed)}" if allowed else none
             report.add(at + (key,), f"unknown key '{key}'; {hint}{suggest(key, allowed)}")
     elif kind in ("enum", "const"):
         allowed = schema.get("enum", [schema.get("const")])
@@ -107,7 +123,7 @@ def _describe(error: jsonschema.ValidationError, report: _Located) -> None:
             allowed = ", ".join(sorted(schema["properties"]))
             report.add(at + (key,), f"unknown key '{key}'; allowed: {allowed} (and the options of the kind)"
                                     f"{suggest(key, sorted(_known_keys(schema)))}")
-    elif kind in ("oneOf", "pattern") and "x-message" in schema:
+    elif kind in ("oneOf", "pattern", "not") and "x-message" in schema:
         report.add(at, schema["x-message"] + (f" (got {value!r})" if kind == "pattern" else ""))
     elif kind in ("minimum", "exclusiveMinimum", "maximum", "exclusiveMaximum"):
         sign = {"minimum": ">=", "exclusiveMinimum": ">", "maximum": "<=", "exclusiveMaximum": "<"}[kind]
@@ -144,7 +160,7 @@ def _hidden_unknown_keys(schema: dict[str, Any], value: Any) -> list[str]:
     return [key for key in value if key not in known]
 
 
-def _path(base: Path, text: str, at: tuple, report: _Located) -> Path | None:
+def _path(base: Path, text: str, at: tuple, report: Located) -> Path | None:
     """The absolute path `text` names (relative: to the matrix's folder); None, reported, when it cannot."""
     path, problem = paths.resolve(base, text)
     if problem:
@@ -152,9 +168,11 @@ def _path(base: Path, text: str, at: tuple, report: _Located) -> Path | None:
     return path
 
 
-def _build(path: Path, data: dict[str, Any], lines: dict, report: _Located, backends: list[str] | None) -> Matrix:
+def _build(path: Path, data: dict[str, Any], lines: dict, report: Located, backends: list[str] | None,
+           vocabulary: Vocabulary | None) -> Matrix:
     base = path.parent.resolve()
-    models = tuple(_model(base, i, m, report) for i, m in enumerate(data["models"]))
+    dataset = load_data.dataset(base, data["dataset"], ("dataset",), report)
+    models = tuple(_model(base, i, m, dataset, report) for i, m in enumerate(data["models"]))
     names = [m.name for m in models]
     for i, name in enumerate(names):
         if names.index(name) != i:
@@ -171,17 +189,38 @@ def _build(path: Path, data: dict[str, Any], lines: dict, report: _Located, back
                 report.add(("axes", "backend", i), f"no backend '{name}' is installed; installed: "
                                                    f"{', '.join(backends)}{suggest(name, backends)}")
     known = {"model": names, "strategy": list(strategies), "backend": backends, "framework": list(FRAMEWORKS),
-             "precision": list(PRECISIONS), "target": list(TARGETS)}
+             **{axis: _pluggable(axis, vocabulary) for axis in PLUGGABLE}}
     selectors = {}
     for section in ("include", "exclude"):
         selectors[section] = tuple(_selector(section, i, s, known, report) for i, s in enumerate(data.get(section, [])))
-    return Matrix(path=path, name=data.get("name", path.stem), models=models,
-                  dataset=_dataset(base, data["dataset"], report), strategies=strategies, axes=axes,
-                  include=selectors["include"], exclude=selectors["exclude"],
-                  settings=Settings(**data.get("settings", {})), lines=lines)
+    _check_metrics(data.get("metrics", []), report)
+    options = {name: dict(given) for name, given in data.get("backend_options", {}).items()}
+    return Matrix(path=path, name=data.get("name", path.stem), models=models, dataset=dataset,
+                  strategies=strategies, axes=axes, include=selectors["include"],
+                  exclude=selectors["exclude"], settings=Settings(**data.get("settings", {})),
+                  backend_options=options, metrics=tuple(data.get("metrics", ())), lines=lines)
 
 
-def _model(base: Path, i: int, m: dict[str, Any], report: _Located) -> ModelSpec:
+def _pluggable(axis: str, vocabulary: Vocabulary | None) -> list[str]:
+    """The values an axis allows: the built-in ones, then those installed backends declare."""
+    declared = getattr(vocabulary, axis + "s", {}) if vocabulary else {}
+    return list(PLUGGABLE[axis]) + sorted(set(declared) - set(PLUGGABLE[axis]))
+
+
+def _check_metrics(names: list[str], report: Located) -> None:
+    """Each listed metric plugin is installed (entry points only: nothing is imported)."""
+    if not names:
+        return
+    from bench_matrix.measure.metric_plugins import metric_names
+
+    installed = metric_names()
+    for i, name in enumerate(names):
+        if name not in installed:
+            report.add(("metrics", i), f"no metric plugin '{name}' is installed; installed: "
+                                       f"{', '.join(installed) or 'none'}{suggest(name, installed)}")
+
+
+def _model(base: Path, i: int, m: dict[str, Any], shared: DatasetSpec, report: Located) -> ModelSpec:
     at = ("models", i)
     file = _path(base, m["file"], at + ("file",), report) if "file" in m else None
     weights = _path(base, m["weights"], at + ("weights",), report) if "weights" in m else None
@@ -200,14 +239,36 @@ def _model(base: Path, i: int, m: dict[str, Any], report: _Located) -> ModelSpec
             report.add(at + ("framework",), "'factory' builds a pytorch module; set framework: pytorch")
     elif "weights" in m:
         report.add(at + ("weights",), "'weights' only goes with 'factory'")
+    own = load_data.dataset(base, m["dataset"], at + ("dataset",), report) if "dataset" in m else None
+    inputs = load_data.inputs(m.get("inputs", []), at + ("inputs",), report)
+    _model_data(m, at, own or shared, inputs, report)
     layout = m.get("layout", DEFAULT_LAYOUT.get(framework, "nchw"))
     return ModelSpec(name=m["name"], framework=framework, builtin=m.get("builtin"), file=file,
                      factory=m.get("factory"), weights=weights,
                      python_path=_python_path(base, at, m.get("python_path", []), report), layout=layout,
-                     training=TrainingSpec(**m.get("training", {})))
+                     training=TrainingSpec(**m.get("training", {})), inputs=inputs, task=m.get("task"),
+                     dataset=own)
 
 
-def _python_path(base: Path, at: tuple, entries: list[str], report: _Located) -> tuple[Path, ...]:
+def _model_data(m: dict[str, Any], at: tuple, data: DatasetSpec, inputs: tuple, report: Located) -> None:
+    """The model's task, declared inputs and source fit the data it is evaluated on."""
+    if "task" in m and (problem := load_data.task_problem(m["task"], data)):
+        report.add(at + ("task",), problem)
+    if "builtin" in m and "inputs" in m:
+        report.add(at + ("inputs",), "'inputs' is for file and factory models; a built-in model's input is "
+                                     "known")
+    elif problem := load_data.one_input_problem(data, inputs):
+        report.add(at + ("inputs",), problem)
+    if data.kind == "synthetic" and "builtin" in m:
+        report.add(at + ("builtin",), "a built-in model is trained on its dataset's labels, and synthetic "
+                                      "data has none; give it a dataset with labels (a model may have its "
+                                      "own 'dataset')")
+    elif data.kind == "synthetic" and "factory" in m and not inputs:
+        report.add(at, "a factory model on synthetic data must declare 'inputs' (name, shape and dtype of "
+                       "each): nothing else says what to generate")
+
+
+def _python_path(base: Path, at: tuple, entries: list[str], report: Located) -> tuple[Path, ...]:
     """Each entry an existing folder (a missing one would make the factory's import fail obscurely)."""
     folders = []
     for j, text in enumerate(entries):
@@ -221,7 +282,7 @@ def _python_path(base: Path, at: tuple, entries: list[str], report: _Located) ->
     return tuple(folders)
 
 
-def _model_file(file: Path, framework: str, at: tuple, report: _Located) -> None:
+def _model_file(file: Path, framework: str, at: tuple, report: Located) -> None:
     """A model file must be a regular file with a known ending, or a SavedModel directory of regular files."""
     found, problem = paths.mode(file)
     if problem:
@@ -249,83 +310,7 @@ def _model_file(file: Path, framework: str, at: tuple, report: _Located) -> None
                                         f"is '{framework}'")
 
 
-def _dataset(base: Path, d: dict[str, Any], report: _Located) -> DatasetSpec:
-    at = ("dataset",)
-    kind = next(k for k in ("builtin", "npz", "folder") if k in d)
-    located = _data_paths(base, kind, d, report)
-    if kind != "builtin":
-        for key in ("samples", "circuits"):
-            if key in d:
-                report.add(at + (key,), f"'{key}' only applies to the builtin dataset")
-    samples, circuits = d.get("samples", DatasetSpec.samples), d.get("circuits", DatasetSpec.circuits)
-    if kind == "builtin" and circuits > samples:
-        report.add(at + ("circuits",), f"{circuits} circuits for {samples} samples: every circuit needs at "
-                                       f"least one sample; lower circuits or raise samples")
-    pre = d.get("preprocess", {})
-    crop = pre.get("crop")
-    labels = d.get("labels", {})
-    default_labels = DRIVING_LABELS if kind == "builtin" else LabelSpec(offset=None, scale=None)
-    label_spec = LabelSpec(columns=tuple(labels.get("columns", default_labels.columns)),
-                           offset=_tuple(labels.get("offset", default_labels.offset)),
-                           scale=_tuple(labels.get("scale", default_labels.scale)))
-    for key in ("offset", "scale"):
-        value = getattr(label_spec, key)
-        if value is not None and kind != "npz" and len(value) not in (1, len(label_spec.columns)):
-            report.add(at + ("labels", key), f"has {len(value)} values for {len(label_spec.columns)} label columns")
-    split = d.get("split", {})
-    fractions = {k: split.get(k, getattr(SplitSpec, k)) for k in ("train", "calibration", "test")}
-    if abs(sum(fractions.values()) - 1.0) > 1e-6:
-        report.add(at + ("split",), f"train + calibration + test must add up to 1, got "
-                                    f"{' + '.join(f'{v:g}' for v in fractions.values())} = {sum(fractions.values()):g}")
-    mean, std = _tuple(pre.get("mean")), _tuple(pre.get("std"))
-    if (mean is None) != (std is None):
-        report.add(at + ("preprocess",), "give both 'mean' and 'std', or neither")
-    for start, end in (("top", "bottom"), ("left", "right")):
-        if crop and crop.get(start) is not None and crop.get(end) is not None and crop[end] <= crop[start]:
-            report.add(at + ("preprocess", "crop", end), f"{end} ({crop[end]}) must be greater than {start} "
-                                                         f"({crop[start]}): the bounds are slice bounds, "
-                                                         f"image[top:bottom, left:right]")
-    return DatasetSpec(
-        kind=kind, paths=located, samples=samples, circuits=circuits, seed=d.get("seed", DatasetSpec.seed),
-        preprocess=Preprocess(crop=(crop.get("top"), crop.get("bottom"), crop.get("left"), crop.get("right"))
-                              if crop else None,
-                              resize=_tuple(pre.get("resize")), scale=pre.get("scale", 1.0 / 255.0), mean=mean, std=std),
-        labels=label_spec,
-        split=SplitSpec(**fractions, by=split.get("by", "auto")))
-
-
-def _data_paths(base: Path, kind: str, d: dict[str, Any], report: _Located) -> tuple[Path, ...]:
-    """The npz file or the folders, each checked: a regular .npz file; folders holding a regular data.csv."""
-    if kind == "builtin":
-        return ()
-    listed = isinstance(d[kind], list)
-    located = []
-    for j, text in enumerate(d[kind] if listed else [d[kind]]):
-        at = ("dataset", kind) + ((j,) if listed else ())
-        path = _path(base, text, at, report)
-        if path is None:
-            continue
-        located.append(path)
-        if kind == "npz":
-            problem = paths.file_problem(path, "dataset file")
-        else:
-            problem = paths.dir_problem(path, "dataset folder") or _csv_problem(path / "data.csv")
-        if problem:
-            report.add(at, problem)
-    return tuple(located)
-
-
-def _csv_problem(csv: Path) -> str | None:
-    if paths.mode(csv) == (None, None):
-        return f"{csv.parent} has no data.csv (expected header image_name,v,w,...)"
-    return paths.file_problem(csv, "data.csv file")
-
-
-def _tuple(value: Any) -> tuple | None:
-    return tuple(value) if value is not None else None
-
-
-def _strategies(declared: dict[str, Any], report: _Located) -> dict[str, StrategySpec]:
+def _strategies(declared: dict[str, Any], report: Located) -> dict[str, StrategySpec]:
     out = {kind: StrategySpec(name=kind, kind=kind) for kind in STRATEGY_KINDS}
     pending = dict(declared)
     for name, entry in declared.items():
@@ -353,7 +338,7 @@ def _strategies(declared: dict[str, Any], report: _Located) -> dict[str, Strateg
 
 
 def _selector(section: str, i: int, entry: dict[str, str], known: dict[str, list[str] | None],
-              report: _Located) -> Selector:
+              report: Located) -> Selector:
     for key, value in entry.items():
         allowed = known.get(key)
         if allowed is not None and value not in allowed:

@@ -2,15 +2,26 @@
 
 from __future__ import annotations
 
+import copy
 import json
-from typing import Any
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+from bench_matrix.matrix.spec import TASKS
+from bench_matrix.tensors import DTYPES
+
+if TYPE_CHECKING:
+    from bench_matrix.backends.registry import Vocabulary
 
 FRAMEWORKS = ("pytorch", "tensorflow", "onnx")
 PRECISIONS = ("fp32", "fp16", "bf16", "int8")
 TARGETS = ("cpu", "cuda", "tensorrt")
 BUILTIN_MODELS = ("pilotnet", "pilotnet_jderobot")
 BUILTIN_FRAMEWORKS = ("pytorch", "tensorflow")  # each built-in model exists in both
+BUILTIN_DATASETS = ("driving", "driving_bends")
+DATASET_KINDS = ("builtin", "npz", "folder", "images", "synthetic")
 CELL_KEYS = ("model", "framework", "backend", "strategy", "precision", "target")
+QAT_KINDS = ("qat", "cqat", "pqat", "pcqat")  # training kinds whose result carries learned int8 ranges
 
 # Upper limits no real matrix reaches; they keep every later computation (timers, allocations, seeds) sane.
 MAX_ITERATIONS = 1_000_000
@@ -24,6 +35,11 @@ MAX_EPOCHS = 10_000
 MAX_LR = 10.0
 MAX_IMAGE_SIDE = 65_536
 MAX_RESIZE = 8_192
+MAX_SYNTHETIC = 1_000_000
+MAX_INPUTS = 64  # named inputs of one model
+MAX_RANK = 8  # axes of one input
+MAX_DIM = 1_000_000  # length of one axis
+MAX_SAMPLE_ELEMENTS = 1 << 26  # values in one sample of one input (a 4K RGB image has 25 M)
 
 
 def _count(minimum: int, maximum: int, **extra: Any) -> dict[str, Any]:
@@ -133,6 +149,75 @@ _SELECTOR = {
     "properties": {key: {"type": "string"} for key in CELL_KEYS},
 }
 
+_FOLDERS = {"oneOf": [{"type": "string"}, {"type": "array", "minItems": 1, "items": {"type": "string"}}],
+            "x-message": "give a folder or a list of folders"}
+_SIDE = _count(1, MAX_RESIZE)
+
+DATASET: dict[str, Any] = {
+    "type": "object", "additionalProperties": False,
+    "properties": {
+        "builtin": {"enum": list(BUILTIN_DATASETS), "description": "driving: road images labelled [v, w] "
+                    "(regression); driving_bends: the same images labelled by the bend ahead (5 classes)"},
+        "npz": {"type": "string", "description": "one array per model input (x for one input), labels y"},
+        "folder": {**_FOLDERS, "description": "DeepLearningStudio recordings: data.csv and images"},
+        "images": {**_FOLDERS, "description": "image folders with one subfolder per class"},
+        "synthetic": {"type": "object", "additionalProperties": False, "required": ["samples"],
+                      "properties": {"samples": _count(1, MAX_SYNTHETIC)},
+                      "description": "random inputs of the models' shapes and dtypes; no labels"},
+        "task": {"enum": list(TASKS), "description": "default: classification for images and driving_bends, "
+                                                     "none for synthetic, regression otherwise"},
+        "samples": _count(10, 200_000, default=4000),
+        "circuits": _count(3, 1_000, default=20),
+        "seed": _SEED,
+        "preprocess": {"type": "object", "additionalProperties": False, "properties": {
+            "crop": {"type": "object", "additionalProperties": False, "properties": {
+                side: _count(0, MAX_IMAGE_SIDE) for side in ("top", "bottom", "left", "right")}},
+            "resize": {"type": "array", "items": _SIDE, "minItems": 2, "maxItems": 2,
+                       "description": "[height, width]"},
+            "resize_shorter": {**_SIDE, "description": "resize so the shorter side has this length"},
+            "center_crop": {"type": "array", "items": _SIDE, "minItems": 2, "maxItems": 2,
+                            "description": "[height, width] cut from the centre, after resizing"},
+            "scale": {"type": "number", "exclusiveMinimum": 0, "maximum": 1e6},
+            "mean": {"type": "array", "items": {"type": "number", "minimum": -1e6, "maximum": 1e6},
+                     "minItems": 1},
+            "std": {"type": "array", "items": {"type": "number", "minimum": 1e-6, "maximum": 1e6},
+                    "minItems": 1},
+        }},
+        "labels": {"type": "object", "additionalProperties": False, "properties": {
+            "columns": {"type": "array", "items": {"type": "string"}, "minItems": 1},
+            "offset": {"type": "array", "items": {"type": "number", "minimum": -1e9, "maximum": 1e9},
+                       "minItems": 1},
+            "scale": {"type": "array", "items": {"type": "number", "minimum": 1e-9, "maximum": 1e9},
+                      "minItems": 1},
+        }},
+        "split": {"type": "object", "additionalProperties": False, "properties": {
+            "train": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
+            "calibration": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
+            "test": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
+            "by": {"enum": ["auto", "group", "block", "random"]},
+        }},
+    },
+    "oneOf": [{"required": [kind]} for kind in DATASET_KINDS],
+    "x-message": f"give exactly one of {', '.join(repr(k) for k in DATASET_KINDS[:-1])} or "
+                 f"'{DATASET_KINDS[-1]}'",
+}
+
+_INPUT = {
+    "type": "object", "additionalProperties": False, "required": ["name", "shape"],
+    "properties": {
+        "name": {"type": "string", "minLength": 1},
+        "shape": {"type": "array", "maxItems": MAX_RANK,
+                  "description": "one sample, no batch axis; null: any length",
+                  "items": {"oneOf": [{"type": "null"}, _count(1, MAX_DIM)],
+                            "x-message": f"each axis is a whole number from 1 to {MAX_DIM}, or null "
+                                         f"(any length)"}},
+        "dtype": {"enum": list(DTYPES), "default": "float32"},
+        "range": {"type": "array", "minItems": 2, "maxItems": 2,
+                  "description": "[low, high] of synthetic values",
+                  "items": {"type": "number", "minimum": -1e9, "maximum": 1e9}},
+    },
+}
+
 SCHEMA: dict[str, Any] = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "$id": "https://bench-matrix.dev/schema/matrix.schema.json",
@@ -163,49 +248,16 @@ SCHEMA: dict[str, Any] = {
                     "epochs": _count(1, MAX_EPOCHS),
                     "batch_size": _count(1, MAX_BATCH),
                     "lr": _LR}},
+                "inputs": {"type": "array", "minItems": 1, "maxItems": MAX_INPUTS, "items": _INPUT,
+                           "description": "the model's named inputs, in order (default: read from the model "
+                                          "file, else the dataset's)"},
+                "task": {"enum": list(TASKS), "description": "this model's task (default: the dataset's)"},
+                "dataset": {**DATASET, "description": "this model's own dataset (default: the matrix's)"},
             },
             "oneOf": [{"required": ["builtin"]}, {"required": ["file"]}, {"required": ["factory"]}],
             "x-message": "give exactly one of 'builtin', 'file' or 'factory' (with 'weights')",
         }},
-        "dataset": {
-            "type": "object", "additionalProperties": False,
-            "properties": {
-                "builtin": {"enum": ["driving"]},
-                "npz": {"type": "string"},
-                "folder": {"oneOf": [{"type": "string"}, {"type": "array", "minItems": 1,
-                                                          "items": {"type": "string"}}],
-                           "x-message": "give a folder or a list of folders"},
-                "samples": _count(10, 200_000),
-                "circuits": _count(3, 1_000),
-                "seed": _SEED,
-                "preprocess": {"type": "object", "additionalProperties": False, "properties": {
-                    "crop": {"type": "object", "additionalProperties": False, "properties": {
-                        side: _count(0, MAX_IMAGE_SIDE) for side in ("top", "bottom", "left", "right")}},
-                    "resize": {"type": "array", "items": _count(1, MAX_RESIZE),
-                               "minItems": 2, "maxItems": 2, "description": "[height, width]"},
-                    "scale": {"type": "number", "exclusiveMinimum": 0, "maximum": 1e6},
-                    "mean": {"type": "array", "items": {"type": "number", "minimum": -1e6, "maximum": 1e6},
-                             "minItems": 1},
-                    "std": {"type": "array", "items": {"type": "number", "minimum": 1e-6, "maximum": 1e6},
-                            "minItems": 1},
-                }},
-                "labels": {"type": "object", "additionalProperties": False, "properties": {
-                    "columns": {"type": "array", "items": {"type": "string"}, "minItems": 1},
-                    "offset": {"type": "array", "items": {"type": "number", "minimum": -1e9, "maximum": 1e9},
-                               "minItems": 1},
-                    "scale": {"type": "array", "items": {"type": "number", "minimum": 1e-9, "maximum": 1e9},
-                              "minItems": 1},
-                }},
-                "split": {"type": "object", "additionalProperties": False, "properties": {
-                    "train": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
-                    "calibration": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
-                    "test": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
-                    "by": {"enum": ["auto", "group", "block", "random"]},
-                }},
-            },
-            "oneOf": [{"required": ["builtin"]}, {"required": ["npz"]}, {"required": ["folder"]}],
-            "x-message": "give exactly one of 'builtin', 'npz' or 'folder'",
-        },
+        "dataset": DATASET,
         "strategies": {"type": "object", "additionalProperties": _strategy_schema(),
                        "propertyNames": {"pattern": NAME["pattern"]}},
         "axes": {
@@ -219,6 +271,10 @@ SCHEMA: dict[str, Any] = {
                 "target": _axis({"enum": list(TARGETS)}),
             },
         },
+        "backend_options": {"type": "object", "description": "each backend's own options, by backend name",
+                            "additionalProperties": {"type": "object"}},
+        "metrics": {"type": "array", "uniqueItems": True, "items": {"type": "string"},
+                    "description": "metric plugins to compute for every cell, besides the task's own"},
         "include": {"type": "array", "items": _SELECTOR},
         "exclude": {"type": "array", "items": _SELECTOR},
         "settings": {"type": "object", "additionalProperties": False, "properties": {
@@ -241,6 +297,28 @@ SCHEMA: dict[str, Any] = {
 }
 
 
-def schema_json() -> str:
-    """The schema as published in docs/matrix.schema.json."""
-    return json.dumps(SCHEMA, indent=2) + "\n"
+def installed_schema(vocabulary: "Vocabulary", metrics: Sequence[str] = ()) -> dict[str, Any]:
+    """SCHEMA extended with what the installed plugins declare: their targets and precisions on the axes, each
+    backend's own options under backend_options, and the installed metric plugins."""
+    schema = copy.deepcopy(SCHEMA)
+    properties = schema["properties"]
+    axes = properties["axes"]["properties"]
+    for axis, builtin, declared in (("precision", PRECISIONS, vocabulary.precisions),
+                                    ("target", TARGETS, vocabulary.targets)):
+        axes[axis]["items"]["enum"] = list(builtin) + sorted(set(declared) - set(builtin))
+    backends = {name: {"type": "object", "additionalProperties": False, "properties": options,
+                       **({} if options else {"x-message": f"backend {name} declares no options"})}
+                for name, options in vocabulary.options.items()}
+    backends.update({name: {"not": {}, "x-message": f"backend {name} cannot be used, so its options cannot "
+                                                    f"be checked: {error}"}
+                     for name, error in vocabulary.broken.items()})
+    properties["backend_options"].update(properties=dict(sorted(backends.items())),
+                                         additionalProperties=False)
+    if metrics:
+        properties["metrics"]["items"] = {"enum": list(metrics)}
+    return schema
+
+
+def schema_json(schema: dict[str, Any] = SCHEMA) -> str:
+    """A schema as JSON text; by default the built-in one, published in docs/matrix.schema.json."""
+    return json.dumps(schema, indent=2) + "\n"

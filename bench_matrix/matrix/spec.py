@@ -6,6 +6,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from bench_matrix.tensors import TensorSpec
+
+TASKS = ("regression", "classification", "none")
+
 
 @dataclass(frozen=True)
 class TrainingSpec:
@@ -43,6 +47,9 @@ class ModelSpec:
     python_path: tuple[Path, ...] = ()
     layout: str = "nchw"
     training: TrainingSpec = field(default_factory=TrainingSpec)
+    inputs: tuple[TensorSpec, ...] = ()  # declared inputs; empty: read from the model file, else the dataset's
+    task: str | None = None  # overrides the dataset's task for this model
+    dataset: "DatasetSpec | None" = None  # this model's own dataset; None: the matrix's
 
     @property
     def source_format(self) -> str:
@@ -61,6 +68,8 @@ class Preprocess:
     scale: float = 1.0 / 255.0
     mean: tuple[float, ...] | None = None
     std: tuple[float, ...] | None = None
+    resize_shorter: int | None = None  # resize so the shorter side has this length (aspect ratio kept) ...
+    center_crop: tuple[int, int] | None = None  # ... then cut the centre (height, width): torchvision's way
 
 
 @dataclass(frozen=True)
@@ -84,10 +93,13 @@ class SplitSpec:
 
 @dataclass(frozen=True)
 class DatasetSpec:
-    """The dataset: built-in synthetic driving, an .npz with x and y, or DeepLearningStudio folders."""
+    """The dataset: a built-in workload, an .npz (one array per input, labels y), DeepLearningStudio folders,
+    image folders with one subfolder per class, or synthetic inputs of the models' shapes."""
 
-    kind: str  # builtin | npz | folder
+    kind: str  # builtin | npz | folder | images | synthetic
     paths: tuple[Path, ...] = ()
+    builtin: str = "driving"  # the built-in workload: driving (regression of v, w) or driving_bends (classes)
+    task: str = "regression"  # one of TASKS
     samples: int = 4000
     circuits: int = 20
     seed: int = 0
@@ -165,7 +177,16 @@ class Matrix:
     include: tuple[Selector, ...]
     exclude: tuple[Selector, ...]
     settings: Settings
+    backend_options: dict[str, dict[str, Any]] = field(default_factory=dict)  # per backend, its own options
+    metrics: tuple[str, ...] = ()  # metric plugins to add to every cell's evaluation
     lines: dict[tuple, int] = field(default_factory=dict, compare=False, repr=False)
 
     def model(self, name: str) -> ModelSpec:
         return next(m for m in self.models if m.name == name)
+
+    def dataset_of(self, model: ModelSpec) -> DatasetSpec:
+        """The dataset a model is evaluated on: its own, or the matrix's."""
+        return model.dataset or self.dataset
+
+    def task_of(self, model: ModelSpec) -> str:
+        return model.task or self.dataset_of(model).task

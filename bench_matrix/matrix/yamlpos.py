@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import difflib
 import sys
 from pathlib import Path
 from typing import Any
@@ -177,3 +178,22 @@ def format_path(at: Path_) -> str:
     for part in at:
         text += f"[{part}]" if isinstance(part, int) else (f".{part}" if text else str(part))
     return text or "(top level)"
+
+
+def suggest(word: str, allowed: list[str] | tuple[str, ...]) -> str:
+    """'; did you mean X?' when a close match exists."""
+    close = difflib.get_close_matches(str(word), [str(a) for a in allowed], n=1, cutoff=0.6)
+    return f"; did you mean '{close[0]}'?" if close else ""
+
+
+class Located:
+    """Collects problems as 'file:line: key: message', the line of the nearest key path the file has."""
+
+    def __init__(self, path: Path, lines: dict[Path_, int]):
+        self.path, self.lines, self.problems = path, lines, []
+
+    def add(self, at: Path_, message: str) -> None:
+        probe = at
+        while probe not in self.lines and probe:
+            probe = probe[:-1]
+        self.problems.append(f"{self.path}:{self.lines.get(probe, 1)}: {format_path(at)}: {message}")

@@ -6,10 +6,13 @@ import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
+from bench_matrix.measure.metrics import DIRECTIONS, SNR_LIMIT_DB
 from bench_matrix.report.summary import ModelSummary, Report, Row, metric, number, p50
+from bench_matrix.store import CellRecord
 
 DASH = "—"
 MIB = 2**20
+DELTA_NAMES = {"regression": "ΔMSE", "classification": "ΔTop-1"}
 DIFFERENT_ENVIRONMENTS = "cells were not all measured in the same environment: compare their numbers with care."
 
 
@@ -78,7 +81,7 @@ def _p50(row: Row) -> str:
 
 
 SIZE, ACCURACY, SPEED, THROUGHPUT = "size", "accuracy", "speed", "throughput"
-COLUMNS: tuple[Column, ...] = (
+LEADING: tuple[Column, ...] = (
     Column("Method", "backend, strategy and precision (and target when not cpu) of the cell.", _method, ""),
     Column("Size\nMiB", "size of the converted model artifact on disk, in MiB (2^20 bytes).",
            lambda r: mib(metric(r.record, "size_bytes")), SIZE),
@@ -94,14 +97,8 @@ COLUMNS: tuple[Column, ...] = (
     Column("Fine-tune\ns", "seconds spent fine-tuning the source model (cached: shared by every backend of the "
            "strategy; included in convert_s).", lambda r: fixed(metric(r.record, "finetune_s"), 0), SIZE,
            optional=True),
-    Column("MSE", "mean squared error on the normalised labels of the test split.",
-           lambda r: sig(metric(r.record, "mse"), 4), ACCURACY),
-    Column("ΔMSE", "cell MSE minus baseline MSE (positive = less accurate than the baseline).",
-           lambda r: signed(r.mse_delta, 3), ACCURACY),
-    Column("MAE", "mean absolute error on the normalised labels of the test split.",
-           lambda r: sig(metric(r.record, "mae"), 4), ACCURACY),
-    Column("max |Δ|\nvs base", "largest absolute difference between the cell's and the baseline's outputs "
-           "on the test split.", lambda r: sig(metric(r.record, "max_abs_diff_vs_baseline"), 3), ACCURACY),
+)
+TRAILING: tuple[Column, ...] = (
     Column("p50\nms", "median latency of one inference at batch 1, in milliseconds, after warm-up; "
                        "\"~\" marks a cell whose timing drifted by more than 5 % between parts of the run in "
                        "every attempt (something else used the machine): treat it as approximate.",
@@ -125,6 +122,84 @@ COLUMNS: tuple[Column, ...] = (
 )
 
 
+def _percent(value: float | None) -> str:
+    return DASH if value is None else f"{value * 100:.2f}"
+
+
+def _points(value: float | None) -> str:
+    """A difference of two fractions in percentage points, signed; exactly zero is "0.00"."""
+    return DASH if value is None else "0.00" if value == 0 else f"{value * 100:+.2f}"
+
+
+def _metric(key: str, render: Callable[[float | None], str]) -> Callable[[Row], str]:
+    return lambda row: render(metric(row.record, key))
+
+
+def _better(key: str) -> str:
+    return "higher is better" if DIRECTIONS[key] == "higher" else "lower is better"
+
+
+def _accuracy(header: str, key: str, what: str, render: Callable[[float | None], str]) -> Column:
+    """A column of one accuracy metric, its direction in the header (↑/↓) and the footnote."""
+    arrow = "↑" if DIRECTIONS[key] == "higher" else "↓"
+    return Column(f"{header} {arrow}", f"{what}; {_better(key)}.", _metric(key, render), ACCURACY)
+
+
+def _sig(digits: int) -> Callable[[float | None], str]:
+    return lambda value: sig(value, digits)
+
+
+def _fixed(decimals: int) -> Callable[[float | None], str]:
+    return lambda value: fixed(value, decimals)
+
+
+MAX_DIFF = _accuracy("max |Δ|\nvs base", "max_abs_diff_vs_baseline",
+                     "largest absolute difference between the cell's and the baseline's outputs on the test "
+                     "split",
+                     _sig(3))
+ACCURACY_COLUMNS: dict[str, tuple[Column, ...]] = {
+    "regression": (
+        _accuracy("MSE", "mse", "mean squared error on the normalised labels of the test split", _sig(4)),
+        Column("ΔMSE", "cell MSE minus baseline MSE (positive = less accurate than the baseline).",
+               lambda r: signed(r.mse_delta, 3), ACCURACY),
+        _accuracy("MAE", "mae", "mean absolute error on the normalised labels of the test split", _sig(4)),
+        MAX_DIFF),
+    "classification": (
+        _accuracy("Top-1\n%", "top1",
+                  "share of test samples whose highest logit is their labelled class, in %", _percent),
+        Column("ΔTop-1\npp", "cell top-1 minus baseline top-1, in percentage points (negative = less "
+               "accurate than the baseline).", lambda r: _points(r.accuracy_delta), ACCURACY),
+        _accuracy("Top-5\n%", "top5", "share of test samples whose labelled class is among the k highest "
+                  "logits, k = min(5, classes), in %", _percent),
+        _accuracy("Agreement\n%", "top1_agreement", "share of test samples whose highest logit is the class "
+                  "the fp32 baseline's highest logit picks, in %", _percent),
+        MAX_DIFF),
+    "none": (
+        MAX_DIFF,
+        _accuracy("Cosine", "cosine_similarity", "mean over test samples of the cosine between the cell's "
+                  "and the baseline's outputs (all outputs of a sample flattened together; 1 = same "
+                  "direction)",
+                  _fixed(6)),
+        _accuracy("SNR\ndB", "snr_db", "signal-to-noise ratio of the outputs against the baseline's, "
+                  f"10·log10(Σ baseline² ÷ Σ difference²); {SNR_LIMIT_DB:.0f} = identical", _fixed(1)),
+    ),
+}
+
+
+def model_columns(model: ModelSummary) -> tuple[Column, ...]:
+    """Every column of the model's results table: its task's accuracy columns and its plugins' figures."""
+    accuracy = ACCURACY_COLUMNS.get(model.task, ACCURACY_COLUMNS["none"])
+    return (*LEADING, *accuracy, *_plugin_columns(model.rows), *TRAILING)
+
+
+def _plugin_columns(rows: Iterable[Row]) -> list[Column]:
+    """One column per metric-plugin figure ("NAME.FIGURE" keys) that some row holds."""
+    keys = sorted({key for r in rows for key, value in r.record.metrics.items()
+                   if "." in key and number(value) is not None})
+    return [Column(key, "figure `{1}` of the metric plugin `{0}` (its direction: see the plugin)."
+                   .format(*key.split(".", 1)), _metric(key, _sig(4)), ACCURACY) for key in keys]
+
+
 def shown(columns: Iterable[Column], rows: Iterable[Row]) -> list[Column]:
     """The columns worth a place in a table of these rows: optional ones only where some row has a value."""
     rows = list(rows)
@@ -138,18 +213,20 @@ def caption(model: ModelSummary) -> str:
     return (f"Rows are the ok cells, baseline first, then fastest p50 first. Latency at batch 1; "
             f"throughput at batch size {batches}; {threads} thread(s). "
             "Speed-up = baseline p50 ÷ cell p50 (>1× = faster); "
-            "size ratio = baseline size ÷ cell size (>1× = smaller).")
+            "size ratio = baseline size ÷ cell size (>1× = smaller); "
+            "↑ = higher is better, ↓ = lower is better.")
 
 
 def baseline_note(model: ModelSummary) -> str | None:
     """Why the comparisons are missing when the baseline cell did not produce a result, else None."""
     if model.baseline is not None and model.baseline.status == "ok":
         return None
+    delta = DELTA_NAMES.get(model.task, "the fidelity figures")
+    missing = f"speed-up, size ratio and {delta} are not available"
     if not model.baseline_key:
-        return ("No baseline is recorded for this model (its preparation never finished): speed-up, size ratio "
-                "and ΔMSE are not available.")
+        return f"No baseline is recorded for this model (its preparation never finished): {missing}."
     state = "is not in the store" if model.baseline is None else model.baseline.status
-    return f"Baseline cell {model.baseline_key} {state}: speed-up, size ratio and ΔMSE are not available."
+    return f"Baseline cell {model.baseline_key} {state}: {missing}."
 
 
 def model_line(model: ModelSummary, code: Callable[[str], str]) -> str:
@@ -171,17 +248,68 @@ def model_line(model: ModelSummary, code: Callable[[str], str]) -> str:
     return " · ".join(parts)
 
 
+def accuracy_line(model: ModelSummary) -> str:
+    """How good the baseline is on its own, by the model's task, so the reader can tell whether it learned."""
+    if model.task == "classification":
+        return top1_line(model)
+    if model.task == "regression":
+        return mse_line(model)
+    return "No labels: fidelity against the fp32 baseline only."
+
+
 def mse_line(model: ModelSummary) -> str:
     """The baseline's test MSE beside the mean predictor's, so the reader can tell whether the model learned."""
-    base = model.baseline if model.baseline is not None and model.baseline.status == "ok" else None
+    base = _ok_baseline(model)
     test = number(model.info.get("test_mse"))
     test = metric(base, "mse") if test is None and base is not None else test
     mean = number(model.info.get("mean_predictor_mse"))
     ratio = f"; ratio {sig(test / mean, 3)} (below 1 = better than predicting the training mean)" \
         if test is not None and mean else ""
-    samples = number(model.info.get("test_samples"))
-    on = f" on {int(samples):,} test samples" if samples is not None else ""
+    on = _on_samples(model)
     return f"Baseline test MSE {sig(test, 4)} vs mean-predictor MSE {sig(mean, 4)}{ratio}{on}."
+
+
+def top1_line(model: ModelSummary) -> str:
+    """The baseline's test top-1 beside always predicting the most common training class."""
+    top1, majority = _baseline_top1(model), number(model.info.get("majority_top1"))
+    return (f"Baseline test top-1 {_percent(top1)} % vs majority-class top-1 {_percent(majority)} % (always "
+            f"predicting the most common training class; higher is better){_on_samples(model)}.")
+
+
+def _baseline_top1(model: ModelSummary) -> float | None:
+    """The fp32 model's test top-1 as its preparation measured it, else as its baseline cell did."""
+    prepared = model.info.get("test_metrics")
+    top1 = number(prepared.get("top1")) if isinstance(prepared, dict) else None
+    base = _ok_baseline(model)
+    return metric(base, "top1") if top1 is None and base is not None else top1
+
+
+def _ok_baseline(model: ModelSummary) -> CellRecord | None:
+    return model.baseline if model.baseline is not None and model.baseline.status == "ok" else None
+
+
+def _on_samples(model: ModelSummary) -> str:
+    samples = number(model.info.get("test_samples"))
+    return f" on {int(samples):,} test samples" if samples is not None else ""
+
+
+def headline_text(model: ModelSummary) -> str:
+    """The model's accuracy in one short cell of the overview table (see HEADLINE_NOTE)."""
+    if model.task == "regression":
+        test, mean = number(model.info.get("test_mse")), number(model.info.get("mean_predictor_mse"))
+        return f"MSE ÷ mean predictor {sig(test / mean, 3)}" if test is not None and mean else DASH
+    if model.task == "classification":
+        top1, majority = _baseline_top1(model), number(model.info.get("majority_top1"))
+        return f"top-1 {_percent(top1)} % (majority {_percent(majority)} %)" if top1 is not None else DASH
+    cosines = [c for c in (metric(r.record, "cosine_similarity") for r in model.rows) if c is not None]
+    return f"lowest cosine {fixed(min(cosines), 6)}" if cosines else DASH
+
+
+HEADLINE_NOTE = ("Accuracy: for regression, the baseline's test MSE ÷ that of always predicting the "
+                 "training mean (below 1 = the model learned something); for classification, the baseline's "
+                 "test top-1 beside always predicting the most common training class (higher is better); "
+                 "without labels, the lowest cosine similarity of any cell's outputs to the fp32 baseline's "
+                 "(1 = identical).")
 
 
 def run_line(report: Report) -> str:

@@ -17,7 +17,9 @@ CSV_COLUMNS = (*CELL_COLUMNS, "status", "reason", "size_bytes", "size_mib", "siz
                "params", "mse", "mae", "max_abs_diff_vs_baseline", *(f"latency_{s}_ms" for s in LATENCY_STATS),
                "latency_n", "latency_e2e_p50_ms", "throughput_sps", "batch_size", "peak_rss_mb", "peak_gpu_mem_mb",
                "gpu_name", "convert_s", "finetune_s", "sparsity", "clusters", "load_s", "threads", "outputs_sha256",
-               "artifact_cached", "speedup_vs_baseline", "size_ratio_vs_baseline", "mse_delta_vs_baseline")
+               "artifact_cached", "speedup_vs_baseline", "size_ratio_vs_baseline", "mse_delta_vs_baseline",
+               "task", "top1", "top5", "top1_agreement", "cosine_similarity", "snr_db",
+               "accuracy_delta_vs_baseline")
 
 
 def records_json(records: list[CellRecord]) -> str:
@@ -28,22 +30,25 @@ def records_json(records: list[CellRecord]) -> str:
 def write_csv(records: list[CellRecord], report: Report, path: Path) -> Path:
     """Write one row per record (missing values empty) to `path` and return it."""
     rows = {row.record.cell.key: row for model in report.models for row in model.rows}
+    tasks = {model.name: model.task for model in report.models}
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="", encoding="utf-8") as handle:
         writer = csv.DictWriter(handle, fieldnames=CSV_COLUMNS, lineterminator="\n")
         writer.writeheader()
         for record in records:
-            writer.writerow(csv_row(record, rows.get(record.cell.key)))
+            writer.writerow(csv_row(record, rows.get(record.cell.key), tasks.get(record.cell.model, "")))
     return path
 
 
-def csv_row(record: CellRecord, row: Row | None) -> dict[str, Any]:
-    """The flat CSV fields of one record; `row` carries the baseline comparisons of an ok cell."""
+def csv_row(record: CellRecord, row: Row | None, task: str) -> dict[str, Any]:
+    """The flat CSV fields of one record of a model of `task`; `row` carries the baseline comparisons of an ok
+    cell."""
     out: dict[str, Any] = {"key": record.cell.key, **record.cell.as_dict(), "status": record.status,
-                           "reason": headline(record.reason)}
+                           "reason": headline(record.reason), "task": task}
     for name in ("size_bytes", "size_gzip_bytes", "params", "mse", "mae", "max_abs_diff_vs_baseline",
                  "throughput_sps", "batch_size", "peak_rss_mb", "peak_gpu_mem_mb", "convert_s", "finetune_s",
-                 "sparsity", "clusters", "load_s", "threads"):
+                 "sparsity", "clusters", "load_s", "threads", "top1", "top5", "top1_agreement",
+                 "cosine_similarity", "snr_db"):
         out[name] = _plain(metric(record, name))
     for name in ("gpu_name", "outputs_sha256"):
         value = record.metrics.get(name)
@@ -60,6 +65,7 @@ def csv_row(record: CellRecord, row: Row | None) -> dict[str, Any]:
     out["speedup_vs_baseline"] = _plain(row.speedup if row else None)
     out["size_ratio_vs_baseline"] = _plain(row.size_ratio if row else None)
     out["mse_delta_vs_baseline"] = _plain(row.mse_delta if row else None)
+    out["accuracy_delta_vs_baseline"] = _plain(row.accuracy_delta if row else None)
     return out
 
 

@@ -7,26 +7,21 @@ import re
 from pathlib import Path
 
 from bench_matrix.report.columns import (
-    COLUMNS,
     DASH,
     DIFFERENT_ENVIRONMENTS,
+    HEADLINE_NOTE,
     Column,
+    accuracy_line,
     baseline_note,
     best_text,
     caption,
+    headline_text,
+    model_columns,
     model_line,
-    mse_line,
     run_line,
     shown,
-    sig,
 )
-from bench_matrix.report.summary import (
-    Environment,
-    ModelSummary,
-    Report,
-    headline,
-    number,
-)
+from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
 from bench_matrix.store import CellRecord
 
 _COLUMN_NOTES = ("Latency is measured one sample at a time after warm-up runs; p50/p90/p99 are percentiles "
@@ -52,36 +47,34 @@ def write_pages(report: Report, out_dir: Path) -> list[Path]:
 
 
 def index_page(report: Report) -> str:
-    """Run summary, one line per model (fastest cell, MSE vs mean predictor, link) and the environment."""
+    """Run summary, one line per model (fastest cell, its task's accuracy, link) and the environment."""
     lines = ["# bench-matrix report", "", run_line(report), "", "## Models", "",
              _table(["Model", "Framework", "ok", "skipped", "failed", "Fastest cell", "p50 ms", "Speed-up",
-                     "Test MSE / mean-predictor MSE"], [False, False, True, True, True, False, True, True, True],
+                     "Accuracy"], [False, False, True, True, True, False, True, True, False],
                     [_index_row(m) for m in report.models]),
-             "", "Speed-up = baseline p50 ÷ fastest cell p50, both at batch 1. The MSE ratio is the baseline's test "
-                 "MSE over that of always predicting the training mean (below 1 = the model learned something).",
+             "", f"Speed-up = baseline p50 ÷ fastest cell p50, both at batch 1. {HEADLINE_NOTE}",
              "", "## Environment", "", *_environment(report.environment)]
     return "\n".join(lines) + "\n"
 
 
 def _index_row(model: ModelSummary) -> list[str]:
     method, latency, speedup = best_text(model)
-    test, mean = number(model.info.get("test_mse")), number(model.info.get("mean_predictor_mse"))
-    ratio = sig(test / mean, 3) if test is not None and mean else DASH
     return [f"[{_escape(model.name)}]({page_name(model.name)})", model.framework, str(len(model.rows)),
-            str(len(model.skipped)), str(len(model.failed)), _escape(method), latency, speedup, ratio]
+            str(len(model.skipped)), str(len(model.failed)), _escape(method), latency, speedup,
+            _escape(headline_text(model))]
 
 
 def model_page(model: ModelSummary) -> str:
     """The model's results table with column notes, skipped and failed cells, and the environment."""
     lines = [f"# {_escape(model.name)}", "", "[← all models](index.md)", "",
-             _escape_text(model_line(model, _code)), "", mse_line(model), ""]
+             _escape_text(model_line(model, _code)), "", _escape(accuracy_line(model)), ""]
     note = baseline_note(model)
     if note:
         lines += [f"> **Note:** {note}", ""]
     lines += [line for suspect in model.suspects for line in (f"> **Suspect:** {_escape_text(suspect)}", "")]
     lines += ["## Results", ""]
     if model.rows:
-        columns = shown(COLUMNS, model.rows)
+        columns = shown(model_columns(model), model.rows)
         lines += [caption(model), "",
                   _table([_header(c) for c in columns], [c.numeric for c in columns],
                          [[_escape(c.render(row)) for c in columns] for row in model.rows]),

@@ -7,6 +7,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from bench_matrix.measure.metrics import HEADLINE
 from bench_matrix.store import CellRecord
 
 STATUSES = ("ok", "skipped", "failed")
@@ -25,6 +26,7 @@ class Row:
     size_ratio: float | None
     mse_delta: float | None
     speedup_own_fp32: float | None = None  # vs the same backend's fp32 cell (strategy none, same target)
+    accuracy_delta: float | None = None  # the task's headline metric (HEADLINE) minus the baseline's
 
 
 @dataclass(frozen=True)
@@ -51,6 +53,10 @@ class ModelSummary:
     failed: tuple[CellRecord, ...]
     environment: Environment
     suspects: tuple[str, ...] = ()  # cells at different precisions whose test outputs are bit-identical
+
+    @property
+    def task(self) -> str:
+        return task_of(self.info)
 
     @property
     def best(self) -> Row | None:
@@ -100,6 +106,11 @@ def headline(text: str | None) -> str:
     return lines[0] if lines else ""
 
 
+def task_of(info: Mapping[str, Any]) -> str:
+    """The model's task as its preparation recorded it; stores written before tasks existed: regression."""
+    return str(info.get("task") or "regression")
+
+
 def count(records: Iterable[CellRecord]) -> dict[str, int]:
     records = list(records)
     return {status: sum(r.status == status for r in records) for status in STATUSES}
@@ -123,7 +134,9 @@ def _model(name: str, records: list[CellRecord], info: dict[str, Any]) -> ModelS
     ok.sort(key=lambda r: (r is not reference, p50(r) is None, p50(r) or 0.0, r.cell.key))
     own_fp32 = {(r.cell.backend, r.cell.target): r for r in ok
                 if r.cell.strategy == "none" and r.cell.precision == "fp32"}
-    rows = tuple(_row(r, reference, own_fp32.get((r.cell.backend, r.cell.target))) for r in ok)
+    headline_metric = HEADLINE.get(task_of(info), "")
+    rows = tuple(_row(r, reference, own_fp32.get((r.cell.backend, r.cell.target)), headline_metric)
+                 for r in ok)
     by_key = sorted(records, key=lambda r: r.cell.key)
     return ModelSummary(name=name, framework=framework, info=info, baseline_key=baseline_key, baseline=baseline,
                         rows=rows, skipped=tuple(r for r in by_key if r.status == "skipped"),
@@ -149,15 +162,21 @@ def suspects(records: Iterable[CellRecord]) -> tuple[str, ...]:
     return tuple(sorted(lines))
 
 
-def _row(record: CellRecord, reference: CellRecord | None, own_fp32: CellRecord | None) -> Row:
+def _row(record: CellRecord, reference: CellRecord | None, own_fp32: CellRecord | None, headline_metric: str
+         ) -> Row:
     own = _ratio(p50(own_fp32), p50(record)) if own_fp32 is not None else None
     if reference is None:
         return Row(record, False, None, None, None, own)
-    mse, base_mse = metric(record, "mse"), metric(reference, "mse")
     return Row(record=record, is_baseline=record is reference,
                speedup=_ratio(p50(reference), p50(record)),
                size_ratio=_ratio(metric(reference, "size_bytes"), metric(record, "size_bytes")),
-               mse_delta=None if mse is None or base_mse is None else mse - base_mse, speedup_own_fp32=own)
+               mse_delta=_difference(record, reference, "mse"), speedup_own_fp32=own,
+               accuracy_delta=_difference(record, reference, headline_metric) if headline_metric else None)
+
+
+def _difference(record: CellRecord, reference: CellRecord, key: str) -> float | None:
+    value, base = metric(record, key), metric(reference, key)
+    return None if value is None or base is None else value - base
 
 
 def _ratio(numerator: float | None, denominator: float | None) -> float | None:

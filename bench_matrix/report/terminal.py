@@ -10,17 +10,17 @@ from rich.text import Text
 
 from bench_matrix.report.columns import (
     ACCURACY,
-    COLUMNS,
     DIFFERENT_ENVIRONMENTS,
     SIZE,
     SPEED,
     THROUGHPUT,
     Column,
+    accuracy_line,
     baseline_note,
     best_text,
     caption,
+    model_columns,
     model_line,
-    mse_line,
     run_line,
     shown,
 )
@@ -56,7 +56,7 @@ def _overview(report: Report) -> Table:
 def _print_model(model: ModelSummary, console: Console) -> None:
     console.rule(Text(model.name, style="bold"))
     console.print(Text(model_line(model, str), style="dim"))
-    console.print(Text(mse_line(model)))
+    console.print(Text(accuracy_line(model)))
     note = baseline_note(model)
     if note:
         console.print(Text(note, style="yellow"))
@@ -79,7 +79,7 @@ def results_tables(model: ModelSummary, console: Console) -> list[Table]:
 
 
 def _columns(groups: tuple[str, ...], model: ModelSummary) -> list[Column]:
-    return shown((c for c in COLUMNS if not c.group or c.group in groups), model.rows)
+    return shown((c for c in model_columns(model) if not c.group or c.group in groups), model.rows)
 
 
 def _width(model: ModelSummary, groups: tuple[str, ...]) -> int:

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from bench_matrix.errors import UserError
+from bench_matrix.tensors import TensorSpec, specs_from_list, specs_to_list
 
 # keras_qat: a quantisation-aware-trained Keras model, written by the tfmot trainer (loaded in tfmot's scope)
 FORMATS = ("torchscript", "torch_export", "state_dict", "onnx", "keras", "h5", "saved_model", "keras_qat")
@@ -26,10 +27,19 @@ class SourceModel:
     format: str  # one of FORMATS
     path: Path
     sha256: str
-    input_shape: tuple[int, ...]  # one sample in the model's layout, without the batch dimension
+    inputs: tuple[TensorSpec, ...]  # the model's named inputs, in order: one sample's shape and dtype each
     factory: str | None = None  # 'module:function' building the module a state_dict belongs to
     python_path: tuple[str, ...] = ()
     origin: str | None = None  # the user's file this is a fine-tuned copy of; None: `path` is the user's
+
+    @property
+    def input_shape(self) -> tuple[int, ...]:
+        """The sample shape of a single-input model (free axes as 8); ModelFileError for several inputs."""
+        if len(self.inputs) != 1:
+            names = ", ".join(i.describe() for i in self.inputs)
+            raise ModelFileError(f"{self.label}: the model has {len(self.inputs)} inputs ({names}); this "
+                                 f"conversion takes models with exactly one input")
+        return tuple(8 if d is None else d for d in self.inputs[0].shape)
 
     @property
     def label(self) -> str:
@@ -61,9 +71,10 @@ class SourceModel:
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
         data["path"] = str(self.path)
+        data["inputs"] = specs_to_list(self.inputs)
         return data
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "SourceModel":
-        return cls(**{**data, "path": Path(data["path"]), "input_shape": tuple(data["input_shape"]),
+        return cls(**{**data, "path": Path(data["path"]), "inputs": specs_from_list(data["inputs"]),
                       "python_path": tuple(data.get("python_path", ()))})

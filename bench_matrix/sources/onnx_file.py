@@ -25,6 +25,14 @@ MAGIC = ((b"PK\x03\x04", "a zip archive (a PyTorch .pt/.pt2 or Keras .keras file
 def load_onnx(path: Path, label: str) -> "onnx.ModelProto":
     """The model in `path` with its external data read in; ModelFileError naming `label` when it is not a
     valid ONNX model or keeps data outside its directory."""
+    model = parse_onnx(path, label)
+    _load_external_data(model, path, label)
+    return model
+
+
+def parse_onnx(path: Path, label: str) -> "onnx.ModelProto":
+    """The model in `path` without its external data (its graph, inputs and outputs); ModelFileError naming
+    `label` when it is not a valid ONNX model."""
     import onnx
     from google.protobuf.message import DecodeError
 
@@ -40,7 +48,6 @@ def load_onnx(path: Path, label: str) -> "onnx.ModelProto":
     if not model.graph.node or not model.ir_version:
         what = "the file is empty" if not data else _kind(data) or "it holds no graph"
         raise ModelFileError(f"{label}: is not a valid ONNX model: {what}; {EXPORT}")
-    _load_external_data(model, path, label)
     return model
 
 

@@ -5,7 +5,9 @@ from __future__ import annotations
 import importlib
 import io
 import sys
-from collections.abc import Mapping
+import warnings
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
 from bench_matrix.sources import ModelFileError
@@ -35,38 +37,45 @@ def load_module(source: "SourceModel") -> "torch.nn.Module":
 
 
 def _torchscript(source: "SourceModel") -> "torch.nn.Module":
+    return load_torchscript(source.path.read_bytes(), source.label)
+
+
+def load_torchscript(data: bytes, label: str) -> "torch.jit.ScriptModule":
     """The ScriptModule of a checked archive, loaded from the very bytes that were checked."""
     import torch
 
-    data = source.path.read_bytes()
-    check_torchscript(data, source.label)
+    check_torchscript(data, label)
     try:
         return torch.jit.load(io.BytesIO(data), map_location="cpu").eval()
     except RuntimeError as exc:
-        raise ModelFileError(f"{source.label}: torch {torch.__version__} cannot load this TorchScript "
+        raise ModelFileError(f"{label}: torch {torch.__version__} cannot load this TorchScript "
                              f"archive ({brief(exc)}); save it again with torch.jit.save of this torch "
                              f"version") from None
 
 
 def _exported(source: "SourceModel") -> "torch.nn.Module":
-    """The module of a checked torch.export archive. Read with torch's archive loader, not torch.export.load,
+    """The module of a checked torch.export archive (see load_program)."""
+    return load_program(source.path.read_bytes(), source.label).module()
+
+
+def load_program(data: bytes, label: str) -> "torch.export.ExportedProgram":
+    """The program of a checked torch.export archive. Read with torch's archive loader, not torch.export.load,
     which falls back to unpickling an older format without weights_only. The guard code the archive carries is
     dropped (module() would exec it); the guards torch derives from the program's shape ranges stay."""
     import torch
     from torch.export.pt2_archive._package import load_pt2
 
-    data = source.path.read_bytes()
-    check_export_archive(data, source.label)
+    check_export_archive(data, label)
     try:
         program = load_pt2(io.BytesIO(data)).exported_programs.get("model")
     except Exception as exc:  # a malformed program: its JSON, a verifier's check, an unknown operator
-        raise ModelFileError(f"{source.label}: torch {torch.__version__} cannot load this torch.export "
+        raise ModelFileError(f"{label}: torch {torch.__version__} cannot load this torch.export "
                              f"program ({brief(exc)}); {RE_EXPORT} of this torch version") from None
     if program is None:
-        raise ModelFileError(f"{source.label}: holds no program named 'model' (the one torch.export.save "
+        raise ModelFileError(f"{label}: holds no program named 'model' (the one torch.export.save "
                              f"writes); {RE_EXPORT}")
     program._guards_code = []
-    return program.module()
+    return program
 
 
 def load_weights(module: "torch.nn.Module", source: "SourceModel") -> None:
@@ -139,6 +148,34 @@ def build_from_factory(factory: str, python_path: tuple[str, ...] = ()) -> "torc
                              f"torch.nn.Module; it must build and return the module whose state_dict the "
                              f"weights file holds")
     return module
+
+
+def use_engine(engine: str | None = None) -> str:
+    """Select the quantised engine (`engine`, or x86 where supported, else fbgemm) and return its name."""
+    import torch
+
+    supported = torch.backends.quantized.supported_engines
+    engine = engine or ("x86" if "x86" in supported else "fbgemm")
+    if engine not in supported:
+        raise RuntimeError(f"the artifact was quantised for torch's {engine!r} engine, which torch "
+                           f"{torch.__version__} here lacks (it has {', '.join(supported)}); convert it again")
+    torch.backends.quantized.engine = engine
+    return engine
+
+
+@contextmanager
+def quiet_torch(captured: bool = False) -> Iterator[None]:
+    """Silence torch's deprecation notices (torch.ao, torch.jit, the TorchScript ONNX exporter); `captured`
+    also silences the tracer's notes on tensor-to-Python conversions, harmless in an already captured graph
+    (an FX-quantised model's scales, a torch.export program's shape guards)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", category=DeprecationWarning)
+        warnings.filterwarnings("ignore", category=FutureWarning)
+        warnings.filterwarnings("ignore", message="(reduce_range will be deprecated|no signature found for"
+                                                  "|torch.quantize_per_tensor)")
+        if captured:
+            warnings.filterwarnings("ignore", message="Converting a tensor to a Python")
+        yield
 
 
 def count_params(module: "torch.nn.Module") -> int:

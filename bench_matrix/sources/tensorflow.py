@@ -51,7 +51,7 @@ def load_keras(source: "SourceModel") -> Any:
     from tf_keras.src.saving.serialization_lib import SafeModeScope
 
     if source.format == "keras_qat":  # our own trainer's output, in the workspace cache
-        from bench_matrix.strategies.tfmot_models import load_qat
+        from bench_matrix.sources.keras_qat import load_qat
 
         return load_qat(source.path)
     check_keras_file(source.path, source.label)
@@ -66,9 +66,6 @@ def load_keras(source: "SourceModel") -> Any:
         raise ModelFileError(f"{source.label}: this SavedModel was not written by Keras (it loads as "
                              f"{type(model).__name__}); save the model with Keras 2 (tf_keras) as .keras, "
                              f".h5 or a Keras SavedModel")
-    if len(model.inputs) != 1 or len(model.outputs) != 1:
-        raise ModelFileError(f"{source.label}: bench-matrix runs models with one input and one output; this "
-                             f"one has {len(model.inputs)} input(s) and {len(model.outputs)} output(s)")
     return model
 
 

@@ -21,12 +21,14 @@ def load_trainer(name: str) -> Trainer:
     """Import and instantiate one registered trainer."""
     eps = [ep for ep in entry_points(group=ENTRY_POINT_GROUP) if ep.name == name]
     if not eps:
-        raise TrainerLoadError(f"no trainer named {name!r} is installed (installed: {', '.join(trainer_names())})")
+        raise TrainerLoadError(f"no trainer named {name!r} is installed (installed: "
+                               f"{', '.join(trainer_names())})")
     try:
         cls = eps[0].load()
         trainer = cls()
     except Exception as exc:  # a broken plugin must not take the tool down
-        raise TrainerLoadError(f"trainer {name!r} ({eps[0].value}) failed to load: {type(exc).__name__}: {exc}") from exc
+        raise TrainerLoadError(f"trainer {name!r} ({eps[0].value}) failed to load: "
+                               f"{type(exc).__name__}: {exc}") from exc
     if not isinstance(trainer, Trainer):
         raise TrainerLoadError(f"trainer {name!r} ({eps[0].value}) is not a bench_matrix Trainer")
     return trainer

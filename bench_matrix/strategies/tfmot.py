@@ -22,21 +22,18 @@ from typing import Any
 
 import numpy as np
 
+from bench_matrix.matrix.schema import QAT_KINDS
 from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.sources.keras_qat import QAT_FORMAT, qat_custom_objects, tfmot_module
+from bench_matrix.sources.tensorflow import keras, tensorflow
 from bench_matrix.strategies.base import (
     FineTuned,
     FineTuneRequest,
     Trainer,
     weight_stats,
 )
-from bench_matrix.strategies.tfmot_models import (
-    QAT_FILE,
-    QAT_FORMAT,
-    is_weighted,
-    qat_custom_objects,
-    stored_kernels,
-    tfmot_module,
-)
+from bench_matrix.strategies.keras_fit import LOSSES, TrainingData, fit, training_data
+from bench_matrix.strategies.tfmot_models import QAT_FILE, is_weighted, stored_kernels
 from bench_matrix.strategies.tfmot_ranges import init_activation_ranges, observed_ranges
 
 # Defaults of every option, per kind; a strategy's options override each one. Budgets follow the study
@@ -117,8 +114,13 @@ class TfmotTrainer(Trainer):
             return f"tensorflow-model-optimization is not importable ({exc}): pip install tensorflow-model-optimization"
         return None
 
-    def steps_reason(self, steps: tuple[StrategySpec, ...], source_format: str) -> str | None:
-        reason = super().steps_reason(steps, source_format)
+    def output_format(self, steps: tuple[StrategySpec, ...], source_format: str) -> str:
+        """A QAT model is saved as a SavedModel (keras_qat), any other as .keras."""
+        return QAT_FORMAT if any(k in QAT_KINDS for s in steps for k in s.kinds()) else "keras"
+
+    def steps_reason(self, steps: tuple[StrategySpec, ...], source_format: str,
+                     task: str = "regression") -> str | None:
+        reason = super().steps_reason(steps, source_format, task)
         if reason:
             return reason
         if source_format not in KERAS_FORMATS:
@@ -146,37 +148,40 @@ class TfmotTrainer(Trainer):
     # --- fine-tuning -------------------------------------------------------------------------------------
 
     def finetune(self, request: FineTuneRequest) -> FineTuned:
-        from bench_matrix.sources.tensorflow import keras, tensorflow
-
         tensorflow(request.threads)
         k = keras()
+        if reason := self.steps_reason(request.steps, request.source.format, request.task):
+            raise ValueError(reason)
         plan = _plan(request.steps)
         k.utils.set_random_seed(request.seed)
         model = request.source.load()
-        data: dict[float, tuple[np.ndarray, np.ndarray]] = {}
-        facts: dict[str, Any] = {"kinds": [s.kind for s in request.steps], "phases": [p for p, _, _ in plan]}
+        splits: dict[float, TrainingData] = {}
+        facts: dict[str, Any] = {"kinds": [s.kind for s in request.steps], "phases": [p for p, _, _ in plan],
+                                 "loss": LOSSES[request.task]}
         done: list[str] = []
         pruned: set[str] = set()
         for phase, kind, opts in plan:
             fraction = float(_option("fraction", kind, opts))
-            if fraction not in data:
-                data[fraction] = request.train(fraction)
-            x, y = data[fraction]
+            if fraction not in splits:
+                inputs, labels = request.train(fraction)
+                splits[fraction] = training_data(inputs, labels, request.source.inputs, request.task, model)
+            data = splits[fraction]
             epochs = _phase_epochs(phase, kind, opts)
             lr = float(_option("lr", kind, opts))
             batch = int(_option("batch_size", kind, opts))
-            n_epochs, per_epoch = _schedule(len(x), batch, epochs)
-            info: dict[str, Any] = {"epochs": epochs, "samples": len(x), "lr": lr, "batch_size": batch,
+            n_epochs, per_epoch = _schedule(len(data), batch, epochs)
+            info: dict[str, Any] = {"epochs": epochs, "samples": len(data), "lr": lr, "batch_size": batch,
                                     "steps": n_epochs * per_epoch}
             if phase == "prune":
-                model, loss, extra = self._prune(model, kind, opts, x, y, lr, batch, n_epochs, per_epoch,
+                model, loss, extra = self._prune(model, kind, opts, data, lr, batch, n_epochs, per_epoch,
                                                  request.seed)
                 pruned = set(extra.pop("pruned_layers"))
             elif phase == "cluster":
-                model, loss, extra = self._cluster(model, kind, opts, x, y, lr, batch, n_epochs, per_epoch,
+                model, loss, extra = self._cluster(model, kind, opts, data, lr, batch, n_epochs, per_epoch,
                                                    request.seed, preserve_sparsity="prune" in done)
             else:
-                model, loss, extra = self._qat(model, done, x, y, lr, batch, n_epochs, per_epoch, request.seed)
+                model, loss, extra = self._qat(model, done, data, lr, batch, n_epochs, per_epoch,
+                                               request.seed)
             info.update(extra)
             info["final_loss"] = loss
             facts[phase] = info
@@ -206,31 +211,8 @@ class TfmotTrainer(Trainer):
         model.save(out / "model.keras")
         return FineTuned("model.keras", "keras", facts)
 
-    @staticmethod
-    def _fit(model: Any, x: np.ndarray, y: np.ndarray, lr: float, batch: int, n_epochs: int, per_epoch: int,
-             seed: int, callbacks: list[Any] = ()) -> float:
-        from bench_matrix.sources.tensorflow import keras, tensorflow
-
-        tf, k = tensorflow(), keras()
-        # Keep the learned normalisation while fine-tuning (a frozen Keras 2 BatchNorm runs in inference mode), and
-        # unfreeze it after: tfmot's prune-preserving QAT registry takes a layer with no trainable weights for one
-        # it quantizes.
-        norms = [layer for layer in model.layers
-                 if isinstance(getattr(layer, "layer", layer), k.layers.BatchNormalization) and layer.trainable]
-        for layer in norms:
-            layer.trainable = False
-        model.compile(optimizer=k.optimizers.Adam(lr), loss="mse")
-        ds = (tf.data.Dataset.from_tensor_slices((x, y)).shuffle(len(x), seed=seed, reshuffle_each_iteration=True)
-              .batch(batch).repeat())
-        history = model.fit(ds, epochs=n_epochs, steps_per_epoch=per_epoch, callbacks=list(callbacks), verbose=0)
-        for layer in norms:
-            layer.trainable = True
-        return float(history.history["loss"][-1])
-
-    def _prune(self, model: Any, kind: str, opts: dict[str, Any], x: np.ndarray, y: np.ndarray, lr: float,
+    def _prune(self, model: Any, kind: str, opts: dict[str, Any], data: TrainingData, lr: float,
                batch: int, n_epochs: int, per_epoch: int, seed: int) -> tuple[Any, float, dict[str, Any]]:
-        from bench_matrix.sources.tensorflow import keras
-
         k, tfmot = keras(), tfmot_module()
         sp = tfmot.sparsity.keras
         total = n_epochs * per_epoch
@@ -264,7 +246,7 @@ class TfmotTrainer(Trainer):
 
         wrapped = k.models.clone_model(model, clone_function=wrap)
         _copy_weights(model, wrapped)
-        loss = self._fit(wrapped, x, y, lr, batch, n_epochs, per_epoch, seed, [sp.UpdatePruningStep()])
+        loss = fit(wrapped, data, lr, batch, n_epochs, per_epoch, seed, [sp.UpdatePruningStep()])
         # The optimizer's last step may move masked weights off zero: apply the final masks before stripping.
         for layer in wrapped.layers:
             for weight, mask, _ in getattr(layer, "pruning_vars", ()):
@@ -279,11 +261,9 @@ class TfmotTrainer(Trainer):
             extra.update(conv_sparsity=targets["conv"], linear_sparsity=targets["linear"])
         return stripped, loss, extra
 
-    def _cluster(self, model: Any, kind: str, opts: dict[str, Any], x: np.ndarray, y: np.ndarray, lr: float,
+    def _cluster(self, model: Any, kind: str, opts: dict[str, Any], data: TrainingData, lr: float,
                  batch: int, n_epochs: int, per_epoch: int, seed: int,
                  preserve_sparsity: bool) -> tuple[Any, float, dict[str, Any]]:
-        from bench_matrix.sources.tensorflow import keras
-
         k, tfmot = keras(), tfmot_module()
         cl = tfmot.clustering.keras
         clusters = int(_option("clusters", kind, opts))
@@ -298,14 +278,12 @@ class TfmotTrainer(Trainer):
 
         wrapped = k.models.clone_model(model, clone_function=wrap)
         _copy_weights(model, wrapped)
-        loss = self._fit(wrapped, x, y, lr, batch, n_epochs, per_epoch, seed)
+        loss = fit(wrapped, data, lr, batch, n_epochs, per_epoch, seed)
         stripped = cl.strip_clustering(wrapped)
         return stripped, loss, {"clusters": clusters, "init": init, "preserve_sparsity": preserve_sparsity}
 
-    def _qat(self, model: Any, done: list[str], x: np.ndarray, y: np.ndarray, lr: float, batch: int,
+    def _qat(self, model: Any, done: list[str], data: TrainingData, lr: float, batch: int,
              n_epochs: int, per_epoch: int, seed: int) -> tuple[Any, float, dict[str, Any]]:
-        from bench_matrix.sources.tensorflow import keras
-
         k, tfmot = keras(), tfmot_module()
         qk = tfmot.quantization.keras
         from tensorflow_model_optimization.python.core.quantization.keras.default_8bit import (
@@ -333,8 +311,8 @@ class TfmotTrainer(Trainer):
         _copy_weights(model, annotated)
         with qk.quantize_scope(qat_custom_objects()):
             quantized = qk.quantize_apply(annotated, scheme)
-        started = init_activation_ranges(quantized, observed_ranges(model, x))
-        loss = self._fit(quantized, x, y, lr, batch, n_epochs, per_epoch, seed)
+        started = init_activation_ranges(quantized, observed_ranges(model, data))
+        loss = fit(quantized, data, lr, batch, n_epochs, per_epoch, seed)
         extra: dict[str, Any] = {"scheme": scheme_name, "ranges_started_from_data": len(started)}
         if float_layers:
             extra["float_layers"] = float_layers  # tfmot's 8-bit registry does not support them: left float

@@ -9,18 +9,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.measure.env import installed_versions
-from bench_matrix.strategies.base import (
-    FineTuned,
-    FineTuneRequest,
-    Trainer,
-    weight_stats,
-)
+from bench_matrix.strategies.base import FineTuned, FineTuneRequest, Trainer, training_arrays, weight_stats
+from bench_matrix.tensors import Inputs, TensorSpec
 
 if TYPE_CHECKING:
     import torch
@@ -76,7 +73,8 @@ def _prune_reason(options: dict[str, Any]) -> str | None:
 
 
 class TorchTrainer(Trainer):
-    """L1 pruning and FX QAT of an nn.Module (a state_dict source), fine-tuned with Adam on MSE."""
+    """L1 pruning and FX QAT of an nn.Module (a state_dict source), fine-tuned with Adam on the task's
+    loss."""
 
     name = "torch"
     description = ("PyTorch: L1 unstructured pruning (per layer or global) and FX quantisation-aware training "
@@ -91,11 +89,19 @@ class TorchTrainer(Trainer):
     def probe(self) -> str | None:
         return None
 
-    def steps_reason(self, steps: tuple[StrategySpec, ...], source_format: str) -> str | None:
+    def output_format(self, steps: tuple[StrategySpec, ...], source_format: str) -> str:
+        """A QAT model ends converted to int8 TorchScript; a pruned one is a state_dict."""
+        return "torchscript" if _flatten(steps)[-1].kind == "qat" else "state_dict"
+
+    def steps_reason(self, steps: tuple[StrategySpec, ...], source_format: str,
+                     task: str = "regression") -> str | None:
         flat = _flatten(steps)
         kinds = tuple(s.kind or "" for s in flat)
         if missing := [k for k in kinds if k not in self.kinds]:
-            return f"{self.name} does not implement {', '.join(missing)} (it implements {', '.join(self.kinds)})"
+            return (f"{self.name} does not implement {', '.join(missing)} "
+                    f"(it implements {', '.join(self.kinds)})")
+        if reason := super().steps_reason(tuple(flat), source_format, task):  # e.g. no labels to train on
+            return reason
         if kinds not in _COMBINATIONS:
             return (f"{self.name} applies prune, qat, or prune then qat; not {' then '.join(kinds)} "
                     f"(QAT's int8 result cannot be pruned or quantised again, and a step may appear once)")
@@ -117,7 +123,7 @@ class TorchTrainer(Trainer):
     def finetune(self, request: FineTuneRequest) -> FineTuned:
         import torch
 
-        if reason := self.steps_reason(request.steps, request.source.format):
+        if reason := self.steps_reason(request.steps, request.source.format, request.task):
             raise ValueError(reason)
         torch.manual_seed(request.seed)
         torch.set_num_threads(request.threads)
@@ -127,12 +133,13 @@ class TorchTrainer(Trainer):
         masks: dict[str, torch.Tensor] = {}
         kernels: list[np.ndarray] = []
         for index, step in enumerate(flat):
-            x, y = request.train(float(step.options.get("fraction", TRAINING_DEFAULTS["fraction"])))
+            inputs, labels = request.train(float(step.options.get("fraction", TRAINING_DEFAULTS["fraction"])))
+            data = _data(inputs, labels, request.source.inputs, request.task)
             generator = torch.Generator().manual_seed(request.seed + index)
             if step.kind == "prune":
-                module, step_facts, masks = _prune(module, step.options, x, y, generator)
+                module, step_facts, masks = _prune(module, step.options, data, generator)
             else:
-                module, step_facts, kernels = _qat(module, step.options, x, y, generator, masks, request)
+                module, step_facts, kernels = _qat(module, step.options, data, generator, masks, request)
             facts["targets"].update(step_facts.pop("targets"))
             facts["steps"].append({"kind": step.kind, **step_facts})
         pruned = [s["pruned_kernel_sparsity"] for s in facts["steps"] if "pruned_kernel_sparsity" in s]
@@ -140,7 +147,7 @@ class TorchTrainer(Trainer):
             facts["pruned_kernel_sparsity"] = pruned[0]
         last = facts["steps"][-1]
         facts.update(epochs=sum(s["epochs"] for s in facts["steps"]), samples=last["samples"],
-                     final_loss=last["final_loss"])
+                     final_loss=last["final_loss"], loss=last["loss"])
         if len(flat) == 1:
             facts.update(lr=last["lr"], batch_size=last["batch_size"])
         if flat[-1].kind == "qat":
@@ -170,20 +177,59 @@ def _training(options: dict[str, Any]) -> tuple[float, float, int]:
             int(options.get("batch_size", TRAINING_DEFAULTS["batch_size"])))
 
 
-def _fit(module: nn.Module, options: dict[str, Any], x: np.ndarray, y: np.ndarray,
-         generator: torch.Generator, on_epoch: Callable[[int, int], None] | None = None,
+@dataclass(frozen=True)
+class _Data:
+    """Training samples as tensors: the model's inputs in its order, and the task's labels."""
+
+    inputs: tuple[torch.Tensor, ...]
+    labels: torch.Tensor  # (N, columns) float32 for regression, (N,) int64 class ids for classification
+    task: str
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+    def take(self, index: torch.Tensor) -> tuple[tuple[torch.Tensor, ...], torch.Tensor]:
+        return tuple(t[index] for t in self.inputs), self.labels[index]
+
+
+def _data(inputs: Inputs, labels: np.ndarray, specs: tuple[TensorSpec, ...], task: str) -> _Data:
+    """The training split's named inputs in the model's input order, and labels typed for the task's loss."""
+    import torch
+
+    arrays, target = training_arrays(inputs, labels, specs, task)
+    return _Data(tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in arrays), torch.from_numpy(target), task)
+
+
+LOSSES = {"regression": "mse", "classification": "cross_entropy"}
+
+
+def _loss(out: Any, labels: torch.Tensor, task: str) -> torch.Tensor:
+    """Cross-entropy of the first output's logits with the class ids, or the MSE of every output (flattened
+    per sample and concatenated, as evaluation compares them) against the label columns."""
+    import torch
+
+    outputs = list(out) if isinstance(out, (tuple, list)) else [out]
+    if task == "classification":
+        return torch.nn.functional.cross_entropy(outputs[0], labels)
+    flat = torch.cat([o.reshape(len(o), -1) for o in outputs], dim=1)
+    if flat.shape != labels.shape:
+        raise ValueError(f"the model outputs {flat.shape[1]} values per sample but the labels have "
+                         f"{labels.shape[1]} column(s)")
+    return torch.nn.functional.mse_loss(flat, labels)
+
+
+def _fit(module: nn.Module, options: dict[str, Any], data: _Data, generator: torch.Generator,
+         on_epoch: Callable[[int, int], None] | None = None,
          after_step: Callable[[], None] | None = None) -> dict[str, Any]:
-    """Adam on MSE in train mode (BatchNorm statistics frozen: running statistics used, not re-estimated from a
-    small fine-tuning set) for `epochs` (a fraction of an epoch allowed) of shuffled mini-batches.
-    on_epoch(k, K) runs before each of the K (started) epochs; after_step after each optimiser step."""
+    """Adam on the task's loss in train mode (BatchNorm running statistics kept, not re-estimated from a small
+    fine-tuning set) for `epochs` (fractions allowed) of shuffled mini-batches. on_epoch(k, K) runs before
+    each of the K (started) epochs; after_step after each optimiser step."""
     import torch
 
     epochs, lr, batch_size = _training(options)
-    if len(x) == 0:
+    if len(data) == 0:
         raise ValueError("no training samples to fine-tune on (is the training split or fraction empty?)")
-    xt = torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))
-    yt = torch.from_numpy(np.ascontiguousarray(y, dtype=np.float32))
-    per_epoch = math.ceil(len(xt) / batch_size)
+    per_epoch = math.ceil(len(data) / batch_size)
     total = max(1, round(epochs * per_epoch))
     started = math.ceil(total / per_epoch)
     optimiser = torch.optim.Adam([p for p in module.parameters() if p.requires_grad], lr=lr)
@@ -192,19 +238,17 @@ def _fit(module: nn.Module, options: dict[str, Any], x: np.ndarray, y: np.ndarra
         if isinstance(layer, torch.nn.modules.batchnorm._BatchNorm):
             layer.eval()
     losses: list[float] = []
-    order = torch.arange(len(xt))
+    order = torch.arange(len(data))
     for step in range(total):
         if step % per_epoch == 0:
             if on_epoch is not None:
                 on_epoch(step // per_epoch, started)
-            order = torch.randperm(len(xt), generator=generator)
+            order = torch.randperm(len(data), generator=generator)
             losses = []
         index = order[(step % per_epoch) * batch_size:(step % per_epoch + 1) * batch_size]
-        xb, yb = xt[index], yt[index]
+        inputs, labels = data.take(index)
         optimiser.zero_grad()
-        out = module(xb)
-        out = out[0] if isinstance(out, (tuple, list)) else out
-        loss = torch.nn.functional.mse_loss(out.reshape(yb.shape), yb)
+        loss = _loss(module(*inputs), labels, data.task)
         loss.backward()
         optimiser.step()
         if after_step is not None:
@@ -212,11 +256,16 @@ def _fit(module: nn.Module, options: dict[str, Any], x: np.ndarray, y: np.ndarra
         losses.append(float(loss.detach()) * len(index))
     module.eval()
     seen = (total - 1) % per_epoch * batch_size + len(index)
-    return {"epochs": total / per_epoch, "samples": len(xt), "lr": lr, "batch_size": batch_size,
-            "steps": total, "batchnorm": "frozen running statistics", "final_loss": sum(losses) / seen}  # mean loss over the last (possibly partial) epoch
+    final_loss = sum(losses) / seen  # the mean loss over the last (possibly partial) epoch
+    if not math.isfinite(final_loss):
+        raise ValueError(f"fine-tuning diverged: the {LOSSES[data.task]} loss is {final_loss} after {total} "
+                         f"steps (lower lr?)")
+    return {"epochs": total / per_epoch, "samples": len(data), "lr": lr, "batch_size": batch_size,
+            "steps": total, "batchnorm": "frozen running statistics", "loss": LOSSES[data.task],
+            "final_loss": final_loss}
 
 
-def _prune(module: nn.Module, options: dict[str, Any], x: np.ndarray, y: np.ndarray,
+def _prune(module: nn.Module, options: dict[str, Any], data: _Data,
            generator: torch.Generator) -> tuple[nn.Module, dict[str, Any], dict[str, torch.Tensor]]:
     """Prune (masks in place while fine-tuning, so pruned weights stay zero), then make it permanent."""
     from torch import nn
@@ -272,7 +321,7 @@ def _prune(module: nn.Module, options: dict[str, Any], x: np.ndarray, y: np.ndar
                 prune.l1_unstructured(layer, "weight", amount=math.ceil(
                     amount(final_amount, k, count) * layer.weight.numel() - 1e-9))
 
-    facts = _fit(module, options, x, y, generator, on_epoch=apply)
+    facts = _fit(module, options, data, generator, on_epoch=apply)
     for layer in layers:
         prune.remove(layer, "weight")
     masks = {name: p.detach() != 0 for name, p in module.named_parameters()
@@ -281,25 +330,25 @@ def _prune(module: nn.Module, options: dict[str, Any], x: np.ndarray, y: np.ndar
     return module, {**facts, "targets": targets, "pruned_kernel_sparsity": pruned_sparsity}, masks
 
 
-def _qat(module: nn.Module, options: dict[str, Any], x: np.ndarray, y: np.ndarray,
-         generator: torch.Generator, masks: dict[str, torch.Tensor],
+def _qat(module: nn.Module, options: dict[str, Any], data: _Data, generator: torch.Generator,
+         masks: dict[str, torch.Tensor],
          request: FineTuneRequest) -> tuple[torch.jit.ScriptModule, dict[str, Any], list[np.ndarray]]:
     """FX QAT (fake quantisation in train mode), convert to int8, trace and freeze to TorchScript.
     `masks` (from a prune step) are re-applied after every optimiser step so that sparsity survives QAT."""
     import warnings
 
     import torch
-    from bench_matrix_backends._torch import quiet_torch, use_engine
-    from torch.ao.quantization import get_default_qat_qconfig_mapping
     from torch.ao.quantization.quantize_fx import convert_fx, prepare_qat_fx
 
+    from bench_matrix.sources.pytorch import quiet_torch, use_engine
+
     engine = use_engine()
-    example = (torch.from_numpy(np.ascontiguousarray(x[:2], dtype=np.float32)),)
+    example = tuple(t[:2] for t in data.inputs)
     with quiet_torch(captured=True), warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Please use quant_min and quant_max")  # torch's own qconfig
         module.train()
         try:
-            prepared = prepare_qat_fx(module, get_default_qat_qconfig_mapping(engine), example_inputs=example)
+            prepared = prepare_qat_fx(module, _qat_mapping(engine), example_inputs=example)
         except Exception as exc:  # symbolic tracing fails on data-dependent Python control flow
             raise ValueError(f"FX graph mode cannot trace {request.source.name} for QAT: "
                              f"{type(exc).__name__}: {exc}") from exc
@@ -314,15 +363,26 @@ def _qat(module: nn.Module, options: dict[str, Any], x: np.ndarray, y: np.ndarra
                 for param, mask in kept:
                     param.mul_(mask)
 
-        facts = _fit(prepared, options, x, y, generator, after_step=keep_sparsity if kept else None)
+        facts = _fit(prepared, options, data, generator, after_step=keep_sparsity if kept else None)
         prepared.eval()
         quantised = convert_fx(prepared)
         # A batch of 2, not 1, so that nothing in the trace specialises on a size-1 batch.
         with torch.no_grad():
-            traced = torch.jit.freeze(torch.jit.trace(quantised, torch.cat([example[0][:1]] * 2)).eval())
+            twice = tuple(torch.cat([t[:1]] * 2) for t in example)
+            traced = torch.jit.freeze(torch.jit.trace(quantised, twice).eval())
     facts["engine"] = engine
     facts["targets"] = {"quantisation": f"int8 FX QAT, {engine} default QAT qconfig (per-channel weights)"}
     return traced, facts, _int8_kernels(quantised)
+
+
+def _qat_mapping(engine: str) -> Any:
+    """The engine's default QAT qconfigs, and int8 weight-only fake quantisation for embeddings (the default's
+    symmetric per-channel weights do not apply to them)."""
+    from torch import nn
+    from torch.ao.quantization import default_embedding_qat_qconfig, get_default_qat_qconfig_mapping
+
+    mapping = get_default_qat_qconfig_mapping(engine)
+    return mapping.set_object_type(nn.Embedding, default_embedding_qat_qconfig)
 
 
 def _int8_kernels(quantised: nn.Module) -> list[np.ndarray]:

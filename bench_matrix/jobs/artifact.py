@@ -1,0 +1,103 @@
+"""Artifacts: convert a source once per content hash and reuse it after; run a session over many samples."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench_matrix import data, hardware
+from bench_matrix.backends.base import Backend, ConvertRequest, Session
+from bench_matrix.matrix.schema import STRATEGY_KINDS
+from bench_matrix.matrix.spec import Settings, StrategySpec
+from bench_matrix.sources import SourceModel
+from bench_matrix.tensors import Inputs, bind, count, take
+from bench_matrix.workspace import Workspace, digest
+
+
+def ensure_artifact(ws: Workspace, backend: Backend, source: SourceModel, step: StrategySpec, precision: str,
+                    target: str, prepared: Any, layout: str, settings: Settings,
+                    options: dict[str, Any]) -> tuple[Path, dict[str, Any], bool]:
+    """Convert once per content hash (source, step, options, libraries, calibration data); reuse after."""
+    calibrated = "calibration_samples" in STRATEGY_KINDS.get(step.kind or "none", {}).get("options", {})
+    # A TensorRT engine covers batches up to max_batch and runs only on the GPU model it was built for.
+    engine = ({"max_batch": settings.batch_size, "gpu": [(g.name, g.capability) for g in hardware.gpus()[:1]]}
+              if target == "tensorrt" else {})
+    key = digest({"source": source.sha256, "inputs": [i.to_dict() for i in source.inputs],
+                  "backend": backend.name, "versions": backend.versions(), "step": step.to_dict(),
+                  "precision": precision, "target": target, "options": options,
+                  "calibration": [prepared.info["fingerprint"], layout] if calibrated else None,
+                  "seed": settings.seed, **engine})
+    final = ws.artifact(backend.name, key)
+    if (final / "manifest.json").is_file():
+        return final, json.loads((final / "manifest.json").read_text()), True
+    tmp = final.with_name(f"{final.name}.tmp{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "model").mkdir(parents=True)
+
+    def calibration(n: int) -> Inputs:
+        x, _ = data.load_split(prepared.directory, "calibration", prepared.preprocess, layout, n)
+        return bind(x, source.inputs)
+
+    shared = ws.intermediates(backend.name, digest({"source": source.sha256, "versions": backend.versions(),
+                                                    "seed": settings.seed}))
+    shared.mkdir(parents=True, exist_ok=True)
+    request = ConvertRequest(source=source, step=step, precision=precision, target=target, out_dir=tmp / "model",
+                             calibration=calibration, threads=settings.threads, seed=settings.seed,
+                             shared_dir=shared, max_batch=settings.batch_size, options=options)
+    begin = time.perf_counter()
+    try:
+        meta = backend.convert(request)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    manifest = {"meta": meta, "convert_s": time.perf_counter() - begin, "params": _params(ws, source),
+                "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                "versions": backend.versions(), "source_sha256": source.sha256, "step": step.to_dict(),
+                "precision": precision, "target": target, "options": options}
+    (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1, default=str))
+    try:
+        tmp.rename(final)
+    except OSError:  # another process finished the same artifact first: keep theirs
+        shutil.rmtree(tmp, ignore_errors=True)
+    return final, json.loads((final / "manifest.json").read_text()), False
+
+
+def predict_all(session: Session, inputs: Inputs, batch_size: int) -> list[np.ndarray]:
+    """Every output of the model over all samples, batch by batch, concatenated per output."""
+    n = count(inputs)
+    parts = [session.predict(take(inputs, slice(i, i + batch_size))) for i in range(0, n, batch_size)]
+    return [np.concatenate([p[k] for p in parts]) for k in range(len(parts[0]))]
+
+
+def _params(ws: Workspace, source: SourceModel) -> int:
+    """The source's parameter count, counted once per content hash (counting loads the model)."""
+    kept = ws.params(source.sha256)
+    if kept.is_file():
+        return int(json.loads(kept.read_text()))
+    params = _count_params(source)
+    kept.parent.mkdir(parents=True, exist_ok=True)
+    partial = kept.with_name(f"{kept.name}.tmp{os.getpid()}")
+    partial.write_text(json.dumps(params))
+    partial.replace(kept)  # a reader never sees a half-written count
+    return params
+
+
+def _count_params(source: SourceModel) -> int:
+    if source.framework == "onnx":
+        from bench_matrix.sources.onnx_file import load_onnx
+
+        return int(sum(np.prod(t.dims) for t in load_onnx(source.path, source.label).graph.initializer))
+    if source.framework == "tensorflow":
+        from bench_matrix.sources.tensorflow import count_params as count_keras_params
+
+        return count_keras_params(source.load())
+    from bench_matrix.sources.pytorch import count_params
+
+    return count_params(source.load())

@@ -1,0 +1,116 @@
+"""The probe job: describe each backend, judge every combination and fine-tuning, read model files' inputs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from bench_matrix.backends.base import Backend
+from bench_matrix.backends.registry import BackendLoadError, load_backend
+from bench_matrix.errors import UserError
+from bench_matrix.jobs import ProbeJob
+from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.tensors import specs_to_list
+
+DEFAULT_FORMAT = {"pytorch": "state_dict", "tensorflow": "keras"}  # what built-in models arrive as
+
+
+def probe(job: ProbeJob) -> dict[str, Any]:
+    """Backends described, verdicts per combination, trainers per fine-tuning, inputs per model file."""
+    backends, described = _load(job.backends)
+    keys = job.keys if job.keys is not None else _declared(backends)
+    trainers = judge_training(job.training)
+    verdicts = {json.dumps(key): _verdict(backends, described, _converted(key, trainers)) for key in keys}
+    return {"backends": described, "verdicts": verdicts, "trainers": trainers,
+            "inputs": {path: _inputs(framework, fmt, path) for framework, fmt, path in job.model_files}}
+
+
+def _load(names: tuple[str, ...]) -> tuple[dict[str, Backend | None], dict[str, Any]]:
+    backends: dict[str, Backend | None] = {}
+    described: dict[str, Any] = {}
+    for name in names:
+        try:
+            b = load_backend(name)
+        except BackendLoadError as exc:
+            backends[name], described[name] = None, {"error": str(exc)}
+            continue
+        backends[name] = b
+        described[name] = {"error": None, "description": b.description, "versions": b.versions(),
+                           "baseline_for": list(b.baseline_for),
+                           "supports": [{k: list(getattr(s, k)) for k in ("frameworks", "strategies",
+                                         "precisions", "targets")} for s in b.supports]}
+    return backends, described
+
+
+def _declared(backends: dict[str, Backend | None]) -> list[tuple]:
+    """Every combination the loaded backends declare, for a default source of each framework."""
+    return [(n, f, st, p, t, DEFAULT_FORMAT.get(f, f), "{}", "") for n, b in backends.items() if b
+            for s in b.supports for f in s.frameworks for st in s.strategies for p in s.precisions
+            for t in s.targets]
+
+
+def _converted(key: tuple, trainers: dict[str, dict[str, Any]]) -> tuple:
+    """The key with the format the backend will really convert: after a fine-tuning, the trainer's output."""
+    *head, source_format, options, training = key
+    written = trainers.get(json.dumps(json.loads(training)), {}).get("format") if training else None
+    return (*head, written or source_format, options)
+
+
+def _verdict(backends: dict[str, Backend | None], described: dict[str, Any], key: tuple) -> dict[str, Any]:
+    name, framework, kind, precision, target, source_format, options = key
+    b = backends[name]
+    if b is None:
+        return {"invalid": None, "skip": described[name]["error"]}
+    step = StrategySpec(name=kind, kind=kind, options=json.loads(options))
+    invalid = b.invalid_reason(framework, kind, precision, target) or b.option_reason(step, source_format)
+    try:
+        reasons = [] if invalid else [b.probe(target, precision), b.probe_source(framework, source_format)]
+        skip = "; ".join(r for r in reasons if r) or None
+    except Exception as exc:  # a probe that crashes is a reason, not a crash of the run
+        skip = f"probing {name} for {target}/{precision} failed: {type(exc).__name__}: {exc}"
+    return {"invalid": invalid, "skip": skip}
+
+
+def judge_training(keys: tuple[tuple[str, str, str, str], ...]) -> dict[str, dict[str, Any]]:
+    """For each (framework, source format, steps, task) the first installed trainer that can apply it, or why
+    none can."""
+    from bench_matrix.strategies.registry import TrainerLoadError, load_trainer, trainer_names
+
+    trainers, errors = [], []
+    for name in trainer_names():
+        try:
+            trainers.append(load_trainer(name))
+        except TrainerLoadError as exc:
+            errors.append(str(exc))
+    verdicts = {}
+    for framework, source_format, steps_json, task in keys:
+        steps = tuple(StrategySpec.from_dict(s) for s in json.loads(steps_json))
+        kinds = ", ".join(s.kind or "" for s in steps)
+        judged = [(t, t.steps_reason(steps, source_format, task)) for t in trainers if t.framework == framework]
+        able = [t for t, r in judged if not r]
+        key = json.dumps([framework, source_format, steps_json, task])
+        if not able:
+            why = "; ".join([f"{t.name}: {r}" for t, r in judged if r] + errors)
+            verdicts[key] = {"invalid": f"{kinds}: {why or f'no installed trainer fine-tunes {framework} models'}"}
+            continue
+        try:
+            skip = able[0].probe()
+        except Exception as exc:  # a probe that crashes is a reason, not a crash of the run
+            skip = f"probing trainer {able[0].name} failed: {type(exc).__name__}: {exc}"
+        verdicts[key] = {"skip": skip, "by": able[0].name, "format": able[0].output_format(steps, source_format)}
+    return verdicts
+
+
+def _inputs(framework: str, source_format: str, path: str) -> dict[str, Any]:
+    """The inputs a model file declares ({'inputs': [...]} or None when it does not say), or why it cannot be
+    read ({'error': ...})."""
+    from bench_matrix.sources.model_io import read_inputs
+
+    try:
+        found = read_inputs(framework, source_format, Path(path))
+    except UserError as exc:
+        return {"error": str(exc)}
+    except Exception as exc:  # a file we cannot read is the model's failure, reported when it is prepared
+        return {"error": f"{path}: cannot read its inputs: {type(exc).__name__}: {exc}"}
+    return {"inputs": None if found is None else specs_to_list(found)}

@@ -1,0 +1,158 @@
+"""Resolve a matrix once, in the parent, into a typed plan: every cell decided (run, skip, invalid, why), its
+steps, trainer, baseline, log and fingerprint; every model's task, inputs and baseline; mistakes found before
+anything runs are a MatrixError (exit 2)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from bench_matrix import __version__, data
+from bench_matrix.backends.registry import available
+from bench_matrix.cell import Cell, CellPlan
+from bench_matrix.errors import MatrixError, UserError
+from bench_matrix.jobs import ProbeJob
+from bench_matrix.launcher import run_job
+from bench_matrix.matrix.expand import Verdict, combinations, plan, training_key, verdict_key
+from bench_matrix.matrix.spec import DatasetSpec, Matrix, ModelSpec
+from bench_matrix.matrix.yamlpos import format_path
+from bench_matrix.measure import env as environment
+from bench_matrix.tensors import TensorSpec, binding_problem, specs_from_list
+from bench_matrix.workspace import Workspace, digest, file_sha256, tree_sha256
+
+PROBE_TIMEOUT_S = 300.0
+
+
+@dataclass(frozen=True)
+class ModelPlan:
+    """A model decided once: its dataset and task, its inputs (declared or read from its file; None: the
+    dataset's), the cell computing its fp32 reference, and the log of its preparation."""
+
+    spec: ModelSpec
+    dataset: DatasetSpec
+    task: str
+    inputs: tuple[TensorSpec, ...] | None
+    baseline: Cell | None
+    log: Path
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Every cell and model of a matrix, decided, plus what the probe learned about each backend."""
+
+    matrix: Matrix
+    cells: tuple[CellPlan, ...]
+    models: dict[str, ModelPlan]
+    excluded: int
+    backends: dict[str, Any] = field(default_factory=dict)
+
+    def by_state(self, state: str) -> list[CellPlan]:
+        return [p for p in self.cells if p.state == state]
+
+
+def resolve(matrix: Matrix, workspace: Workspace) -> Plan:
+    """Expand the matrix and judge every combination in a child process (imports stay out of the parent)."""
+    installed = list(available())
+    cells, excluded = combinations(matrix, installed)
+    keys = tuple(sorted({verdict_key(matrix, c) for c in cells}))
+    training = tuple(sorted({k for c in cells if (k := training_key(matrix, c))}))
+    files = tuple(sorted({(m.framework, m.source_format, str(m.file)) for m in matrix.models
+                          if m.file is not None and not m.inputs}))
+    names = tuple(sorted(set(installed) | {k[0] for k in keys}))
+    outcome = run_job(ProbeJob(workspace, names, keys, training, files), workspace.jobs,
+                      workspace.log("probe"), PROBE_TIMEOUT_S)
+    if not outcome.ok:
+        raise UserError(f"probing the installed backends failed: {outcome.error}")
+    probed = outcome.value
+    verdicts = {tuple(json.loads(k)): Verdict(**v) for k, v in probed["verdicts"].items()}
+    trainers = {tuple(json.loads(k)): Verdict(**v) for k, v in probed["trainers"].items()}
+    baselines = {f: n for n, b in sorted(probed["backends"].items()) for f in b.get("baseline_for", [])}
+    expansion = plan(matrix, cells, excluded, verdicts, trainers, baselines)
+    models = {m.name: _model_plan(matrix, m, probed["inputs"], baselines, workspace) for m in matrix.models}
+    _check_models(matrix, models)
+    prints = Fingerprints(matrix, probed["backends"])
+    decided = tuple(replace(p, log=workspace.cell_log(p.cell.key), fingerprint=prints.cell(p))
+                    for p in expansion.cells)
+    return Plan(matrix, decided, models, excluded, probed["backends"])
+
+
+def _model_plan(matrix: Matrix, model: ModelSpec, read: dict[str, Any], baselines: dict[str, str],
+                workspace: Workspace) -> ModelPlan:
+    found = read.get(str(model.file), {}).get("inputs") if model.file is not None else None
+    inputs = model.inputs or (specs_from_list(found) if found else None)
+    backend = baselines.get(model.framework)
+    baseline = Cell(model.name, model.framework, backend, "none", "fp32", "cpu") if backend else None
+    dataset = replace(matrix.dataset_of(model), task=matrix.task_of(model))  # the task decides the labels
+    return ModelPlan(model, dataset, dataset.task, inputs, baseline, workspace.log(f"model-{model.name}"))
+
+
+def _check_models(matrix: Matrix, models: dict[str, ModelPlan]) -> None:
+    """Inputs the data cannot feed, synthetic data for a model whose inputs nobody declared: exit 2, located."""
+    problems = []
+    for i, m in enumerate(matrix.models):
+        planned = models[m.name]
+        at = ("models", i)
+        if planned.dataset.kind == "synthetic" and planned.inputs is None:
+            problems.append((at, f"model {m.name}: synthetic data is drawn for the model's inputs, which its "
+                                 f"{'file does' if m.file else 'factory and weights do'} not declare; declare "
+                                 f"them under models[{i}].inputs (name, shape, dtype)"))
+            continue
+        described = data.describe(planned.dataset, m.layout)
+        if planned.inputs is None or described is None:
+            continue
+        if problem := binding_problem(described, planned.inputs):
+            problems.append((at + ("inputs",) if m.inputs else at, f"model {m.name}: {problem}"))
+    if problems:
+        raise MatrixError([f"{matrix.path}:{_line(matrix, at)}: {format_path(at)}: {message}"
+                           for at, message in problems])
+
+
+def _line(matrix: Matrix, at: tuple) -> int:
+    while at and at not in matrix.lines:
+        at = at[:-1]
+    return matrix.lines.get(at, 1)
+
+
+class Fingerprints:
+    """Everything that determines a cell's result, hashed without where the files lie: a stored record with
+    another fingerprint is stale."""
+
+    def __init__(self, matrix: Matrix, backends: dict[str, Any]):
+        self.matrix, self.backends = matrix, backends
+        self.libraries = environment.library_versions()  # an upgraded runtime makes stored results stale
+        self._hashes: dict[Path, str] = {}
+
+    def cell(self, planned: CellPlan) -> str:
+        m, cell = self.matrix, planned.cell
+        model = m.model(cell.model)
+        return digest({"cell": cell.key, "model": self.model(model), "dataset": self.dataset(m.dataset_of(model)),
+                       "task": m.task_of(model), "libraries": self.libraries,
+                       "backend": self.backends.get(cell.backend, {}).get("versions"),
+                       "options": m.backend_options.get(cell.backend, {}),
+                       "strategy": m.strategies[cell.strategy].to_dict(),
+                       "settings": {k: v for k, v in m.settings.to_dict().items()
+                                    if k not in ("timeout_s", "passes")},  # neither changes what is measured
+                       "metrics": list(m.metrics), "version": __version__})
+
+    def model(self, model: ModelSpec) -> dict[str, Any]:
+        portable = asdict(model)
+        portable.update(file=None, weights=None, dataset=None,
+                        python_path=[self._relative(p) for p in model.python_path],
+                        files=[self._hash(p) for p in (model.file, model.weights) if p is not None])
+        return portable
+
+    def dataset(self, spec: DatasetSpec) -> dict[str, Any]:
+        portable = {**asdict(spec), "paths": [p.name for p in spec.paths]}
+        return {"spec": portable, "content": [self._hash(p) for p in spec.paths]}
+
+    def _relative(self, path: Path) -> str:
+        base = self.matrix.path.parent.resolve()
+        return str(path.relative_to(base)) if path.is_relative_to(base) else str(path)
+
+    def _hash(self, path: Path) -> str:
+        """A file's (or folder's) content hash, computed once per run."""
+        if path not in self._hashes:
+            self._hashes[path] = tree_sha256([path]) if path.is_dir() else file_sha256(path)
+        return self._hashes[path]
