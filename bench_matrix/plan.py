@@ -36,6 +36,7 @@ class ModelPlan:
     inputs: tuple[TensorSpec, ...] | None
     baseline: Cell | None
     log: Path
+    described: str  # how reports name its source: builtin, file or factory + weights, relative to the matrix
 
 
 @dataclass(frozen=True)
@@ -85,7 +86,21 @@ def _model_plan(matrix: Matrix, model: ModelSpec, read: dict[str, Any], baseline
     backend = baselines.get(model.framework)
     baseline = Cell(model.name, model.framework, backend, "none", "fp32", "cpu") if backend else None
     dataset = replace(matrix.dataset_of(model), task=matrix.task_of(model))  # the task decides the labels
-    return ModelPlan(model, dataset, dataset.task, inputs, baseline, workspace.log(f"model-{model.name}"))
+    return ModelPlan(model, dataset, dataset.task, inputs, baseline, workspace.log(f"model-{model.name}"),
+                     _described(matrix, model))
+
+
+def _described(matrix: Matrix, model: ModelSpec) -> str:
+    if model.builtin:
+        return f"builtin {model.builtin} (trained on the dataset's training split)"
+    shown = relative(matrix, model.file or model.weights)
+    return shown if model.file else f"{model.factory} + {shown}"
+
+
+def relative(matrix: Matrix, path: Path) -> str:
+    """A path as seen from the matrix file's folder (absolute when it lies elsewhere)."""
+    base = matrix.path.parent.resolve()
+    return str(path.relative_to(base)) if path.is_relative_to(base) else str(path)
 
 
 def _check_models(matrix: Matrix, models: dict[str, ModelPlan]) -> None:
@@ -139,17 +154,13 @@ class Fingerprints:
     def model(self, model: ModelSpec) -> dict[str, Any]:
         portable = asdict(model)
         portable.update(file=None, weights=None, dataset=None,
-                        python_path=[self._relative(p) for p in model.python_path],
+                        python_path=[relative(self.matrix, p) for p in model.python_path],
                         files=[self._hash(p) for p in (model.file, model.weights) if p is not None])
         return portable
 
     def dataset(self, spec: DatasetSpec) -> dict[str, Any]:
         portable = {**asdict(spec), "paths": [p.name for p in spec.paths]}
         return {"spec": portable, "content": [self._hash(p) for p in spec.paths]}
-
-    def _relative(self, path: Path) -> str:
-        base = self.matrix.path.parent.resolve()
-        return str(path.relative_to(base)) if path.is_relative_to(base) else str(path)
 
     def _hash(self, path: Path) -> str:
         """A file's (or folder's) content hash, computed once per run."""

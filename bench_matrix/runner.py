@@ -146,7 +146,7 @@ class Runner:
                                  f"models")
         progress.step(f"preparing model {model.spec.name}")
         job = ModelJob(self.ws, model.spec, model.inputs, model.task, prepared, self.matrix.settings,
-                       model.baseline)
+                       model.baseline, model.described)
         outcome = run_job(job, self.ws.jobs, model.log, PREPARE_TIMEOUT_S, on_phase=progress.phase,
                           tick=progress.tick)
         if not outcome.ok:

@@ -158,3 +158,20 @@ def test_plan_exits_2_on_a_typo_in_declared_vocabulary(project):
     assert done.returncode == 2, done.stdout + done.stderr
     assert ("backend_options.npu_rt.hint: 'latncy' is not allowed; allowed: latency, throughput; did you "
             "mean 'latency'?") in done.stderr
+
+
+@pytest.mark.slow
+def test_a_plugin_target_and_its_options_run_end_to_end(project):
+    """The npu target (emulated on ONNX Runtime's CPU provider) runs, the options reach the conversion, the
+    plugin's versions are in the record, its int4 is skipped with the plugin's reason."""
+    (project / "m.yaml").write_text(MATRIX + "settings: {min_iterations: 5, min_time_s: 0.02, warmup_s: 0.0, "
+                                              "throughput_time_s: 0.02, batch_size: 4}\n")
+    run = cli(project, "run", "m.yaml", env={"NPU_RT_EMULATE": "1"})
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "2 ok, 2 skipped, 0 failed" in run.stdout
+    out = cli(project, "report", "--format", "json")
+    found = {(r["cell"]["precision"], r["cell"]["target"]): r for r in json.loads(out.stdout)}
+    npu = found[("fp32", "npu")]
+    assert npu["status"] == "ok" and npu["metrics"]["session"] == {"hint": "latency", "streams": 2}
+    assert npu["env"]["backend_versions"] == {"npu-rt": "0.1"} and npu["metrics"]["cosine_similarity"] > 0.999
+    assert "int4 needs an NPU compiler" in found[("int4", "npu")]["reason"]

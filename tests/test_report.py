@@ -227,3 +227,13 @@ def test_unsteady_latency_is_marked(tmp_path: Path) -> None:
     store.close()
     page = write_report(path, "md", tmp_path / "md", _console())[1].read_text()
     assert "| 1.00 ~ |" in page and "| 2.00 |" in page
+
+
+def test_the_environment_names_every_backends_libraries_plugins_included():
+    from bench_matrix.report.summary import environment
+    from bench_matrix.store import CellRecord
+
+    cell = Cell("m", "onnx", "openvino", "none", "fp32", "npu")
+    env = {"host": "h", "libraries": {"numpy": "2.0"}, "backend_versions": {"openvino": "2025.1"}}
+    libraries = dict(environment([CellRecord(cell=cell, status="ok", env=env)]).libraries)
+    assert libraries == {"numpy": ("2.0",), "openvino": ("2025.1",)}

@@ -63,6 +63,7 @@ class ModelJob(Job):
     data: PreparedData
     settings: Settings
     baseline: Cell
+    described: str  # how the report names the model's source (paths relative to the matrix file)
 
 
 @dataclass(frozen=True)

@@ -60,7 +60,7 @@ def prepare_model(job: ModelJob) -> dict[str, Any]:
     _check_outputs(spec, job.task, outputs, y, prepared.info)
     out.mkdir(parents=True, exist_ok=True)
     np.savez(out / "reference.npz", *outputs)
-    info = {"framework": spec.framework, "source": _describe(spec), "params": manifest["params"],
+    info = {"framework": spec.framework, "source": job.described, "params": manifest["params"],
             "sha256": source.sha256, "baseline_key": job.baseline.key, "task": job.task,
             "inputs": [i.to_dict() for i in inputs], "outputs": [list(o.shape[1:]) for o in outputs],
             "test_metrics": evaluate(job.task, outputs, y, None), "test_samples": int(len(outputs[0])),
@@ -187,9 +187,3 @@ def _trained_builtin(spec: ModelSpec, ws: Workspace, prepared: Any, seed: int,
         return SourceModel(spec.name, "tensorflow", "keras", model_file, file_sha256(model_file), inputs), facts
     return (SourceModel(spec.name, "pytorch", "state_dict", model_file, file_sha256(model_file), inputs,
                         factory=FACTORIES[spec.builtin]), facts)
-
-
-def _describe(spec: ModelSpec) -> str:
-    if spec.builtin:
-        return f"builtin {spec.builtin} (trained on the dataset's training split)"
-    return str(spec.file) if spec.file else f"{spec.factory} + {spec.weights}"

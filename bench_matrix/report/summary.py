@@ -206,7 +206,8 @@ def environment(records: Iterable[CellRecord]) -> Environment:
         for label, key in ENV_FIELDS:
             if env.get(key) is not None:
                 fields[label].add(_text(env[key]))
-        for name, version in (env.get("libraries") or {}).items():
+        # the tool's libraries and each backend's own (a plugin's included)
+        for name, version in {**(env.get("libraries") or {}), **(env.get("backend_versions") or {})}.items():
             libraries.setdefault(name, set()).add(_text(version))
         for name, value in (env.get("runtime") or {}).items():
             runtime.setdefault(f"{record.cell.backend} {name}", set()).add(_text(value))
