@@ -311,7 +311,8 @@ def test_two_input_two_output_model_is_pruned_on_every_output(two_io: Any, tmp_p
 def test_two_input_qat_keeps_the_model_close(two_io: Any, tmp_path: Path) -> None:
     source, inputs, y = two_io
     result = _run(source, (inputs, y), tmp_path, ("qat", {"epochs": 1, "lr": 1e-9}))
-    assert result.facts["qat"]["float_layers"] == ["embedding (Embedding)"]
+    floats = result.facts["qat"]["float_layers"]  # names are numbered per process
+    assert len(floats) == 1 and floats[0].endswith("(Embedding)"), floats
     model = _load(tmp_path, result)
     assert _two_io_mse(model, inputs, y) == pytest.approx(_two_io_mse(source.load(), inputs, y), rel=0.1)
 
