@@ -6,6 +6,7 @@ import json
 import os
 import shutil
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -44,8 +45,9 @@ def prepare_model(job: ModelJob) -> dict[str, Any]:
                   "dataset": prepared.info["fingerprint"], "seed": settings.seed, "eval": settings.eval_samples,
                   "format": 2, "baseline": [job.baseline.backend, environment.library_versions()]})
     out = ws.models(key)
-    if (out / "prepared.json").is_file():
-        return json.loads((out / "prepared.json").read_text())
+    if (out / "prepared.json").is_file():  # paths are derived afresh: the workspace may be named otherwise now
+        source, _ = _source(spec, ws, prepared, settings.seed, inputs)
+        return _prepared(source, json.loads((out / "prepared.json").read_text())["info"], out)
     phase("prepare")
     _check_binding(spec, prepared, inputs)
     source, training = _source(spec, ws, prepared, settings.seed, inputs)
@@ -67,9 +69,13 @@ def prepare_model(job: ModelJob) -> dict[str, Any]:
             "training": training, **_chance(prepared.info)}
     if job.task == "regression":
         info["test_mse"] = info["test_metrics"]["mse"]
-    result = {"source": source.to_dict(), "info": info, "reference": str(out / "reference.npz")}
-    (out / "prepared.json").write_text(json.dumps(result, indent=1))
-    return result
+    (out / "prepared.json").write_text(json.dumps({"info": info}, indent=1))
+    return _prepared(source, info, out)
+
+
+def _prepared(source: SourceModel, info: dict[str, Any], out: Path) -> dict[str, Any]:
+    """A prepared model as the parent takes it: the source, its facts and its fp32 reference outputs."""
+    return {"source": source.to_dict(), "info": info, "reference": str(out / "reference.npz")}
 
 
 def _chance(info: dict[str, Any]) -> dict[str, Any]:

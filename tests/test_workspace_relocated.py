@@ -1,0 +1,29 @@
+"""A workspace named by a relative path in one run and from elsewhere in the next: cached preparations
+must not keep paths that only made sense from the first run's directory."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from conftest import matrix_text
+
+
+def cli_in(cwd, workspace, *args: str) -> subprocess.CompletedProcess:
+    """`bench-matrix --workspace WORKSPACE ARGS...` started in `cwd`."""
+    return subprocess.run([sys.executable, "-m", "bench_matrix.cli", "--workspace", str(workspace), *args],
+                          cwd=cwd, capture_output=True, text=True, timeout=300)
+
+
+def test_a_cached_model_is_found_from_another_directory(tiny_project, tmp_path_factory):
+    (tiny_project / "m.yaml").write_text(matrix_text(["pytorch", "onnxruntime"], ["none"], ["fp32"], ["cpu"]))
+    first = cli_in(tiny_project, "ws", "run", "m.yaml")
+    assert "2 ok, 0 skipped, 0 failed" in first.stdout, first.stdout + first.stderr
+    elsewhere = tmp_path_factory.mktemp("elsewhere")
+    second = cli_in(elsewhere, tiny_project / "ws", "run", str(tiny_project / "m.yaml"), "--force")
+    assert "2 ok, 0 skipped, 0 failed" in second.stdout, second.stdout + second.stderr
+    report = cli_in(elsewhere, tiny_project / "ws", "report", "--format", "json")
+    records = json.loads(report.stdout)
+    assert [r["status"] for r in records] == ["ok", "ok"]
+    assert all(r["metrics"]["max_abs_diff_vs_baseline"] < 1e-4 for r in records)
