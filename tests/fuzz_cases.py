@@ -1,5 +1,5 @@
-"""Generators of broken and hostile matrix texts for test_fuzz_inputs.py, each with what its error message must
-name, and what every case shares (fuzz_file_cases.py makes the data and model files); seeded."""
+"""Generators of broken and hostile matrix texts for test_fuzz_inputs.py, each with what its error message
+must name, and what every case shares (fuzz_data_cases.py and fuzz_model_cases.py make the files); seeded."""
 
 from __future__ import annotations
 

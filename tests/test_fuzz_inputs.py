@@ -1,5 +1,6 @@
 """Fuzz test of every class of bad input (issue 11): generated broken and hostile matrix files and
-command-line values (fuzz_cases.py), data files and model files (fuzz_file_cases.py), each asserted end to end:
+command-line values (fuzz_cases.py), data files (fuzz_data_cases.py) and model files (fuzz_model_cases.py),
+each asserted end to end:
 the exit code, no traceback, a message naming the culprit, no advice to load a file unsafely, and no file
 written by a payload."""
 
@@ -20,7 +21,8 @@ import pytest
 import yaml
 
 import fuzz_cases as fc
-import fuzz_file_cases as ff
+import fuzz_data_cases as fd
+import fuzz_model_cases as fm
 from bench_matrix.cli import main
 from bench_matrix.errors import UserError
 from conftest import cli, popen_cli
@@ -222,7 +224,7 @@ def prepare_data(project: Path, case: fc.Case) -> Outcome:
 
 
 @pytest.mark.timeout(60)
-@pytest.mark.parametrize("case", ff.data_cases(), ids=lambda c: c.id)
+@pytest.mark.parametrize("case", fd.data_cases(), ids=lambda c: c.id)
 def test_data_mistake_is_refused_naming_it(case: fc.Case, tmp_path: Path):
     assert_exit_2(prepare_data(tmp_path, case), case.culprit)
     assert not (case.marker and (tmp_path / "markers" / case.marker).exists()), "a payload in the data ran"
@@ -234,7 +236,7 @@ END_TO_END = ("npz:truncated", "npz:nan_labels", "npz:object_images", "folder:cs
 
 @pytest.mark.slow
 @pytest.mark.timeout(180)
-@pytest.mark.parametrize("case", [c for c in ff.data_cases() if c.id in END_TO_END], ids=lambda c: c.id)
+@pytest.mark.parametrize("case", [c for c in fd.data_cases() if c.id in END_TO_END], ids=lambda c: c.id)
 def test_data_mistake_stops_the_run_with_exit_2(case: fc.Case, tmp_path: Path, capsys):
     (tmp_path / "tiny.onnx").write_bytes(fc.onnx_model())
     (tmp_path / MATRIX).write_text(case.build(tmp_path))
@@ -249,13 +251,13 @@ def test_the_model_payloads_are_live(tmp_path: Path):
     import torch
 
     for name in ("pt2_weight", "pt2_constant"):
-        (tmp_path / name).write_bytes(ff.hostile_pt2(tmp_path, name))
+        (tmp_path / name).write_bytes(fm.hostile_pt2(tmp_path, name))
         try:
             torch.export.load(tmp_path / name)
         except Exception:  # a pickled weight is unpickled before the program is checked
             pass
         assert (tmp_path / "markers" / name).exists(), name
-    (tmp_path / "writer.pt").write_bytes(ff.file_writer(tmp_path / "markers" / "ts_writer"))
+    (tmp_path / "writer.pt").write_bytes(fm.file_writer(tmp_path / "markers" / "ts_writer"))
     torch.jit.load(str(tmp_path / "writer.pt"))(torch.zeros(1, 3, 16, 16))
     assert (tmp_path / "markers" / "ts_writer").exists()
 
@@ -306,7 +308,8 @@ class Group:
 
 def build(*args: Path) -> subprocess.Popen:
     """`python fuzz_cases.py ARGS` (torch.export is not thread-safe, and TensorFlow is slow to import)."""
-    return subprocess.Popen([sys.executable, str(fc.TESTS / "fuzz_file_cases.py"), *map(str, args)], text=True,
+    script = str(fc.TESTS / "fuzz_model_cases.py")
+    return subprocess.Popen([sys.executable, script, *map(str, args)], text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             env={**os.environ, "TF_CPP_MIN_LOG_LEVEL": "3"})
 
@@ -322,8 +325,8 @@ def run_model_groups(torch_project: Path, other_project: Path) -> dict[str, Grou
     fc.write_project(torch_project)
     fc.write_project(other_project)
     torch_files, keras_files = build("torch", torch_project), build("keras", other_project)
-    groups = [Group(torch_project, ff.torch_model_cases(), ["pytorch"]),
-              Group(other_project, ff.onnx_and_keras_cases(), ["onnxruntime", "tensorflow"])]
+    groups = [Group(torch_project, fm.torch_model_cases(), ["pytorch"]),
+              Group(other_project, fm.onnx_and_keras_cases(), ["onnxruntime", "tensorflow"])]
     torch_run = groups[0].start(json.loads(built(torch_files)))
     built(keras_files)
     other_run = groups[1].start({case.id: case.build(other_project) for case in groups[1].cases})
@@ -348,7 +351,7 @@ def model_runs(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPath
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("case", ff.torch_model_cases() + ff.onnx_and_keras_cases(), ids=lambda c: c.id)
+@pytest.mark.parametrize("case", fm.torch_model_cases() + fm.onnx_and_keras_cases(), ids=lambda c: c.id)
 def test_broken_or_hostile_model_fails_its_cells_naming_the_file(case: fc.Case, model_runs: Future):
     group = model_runs.result()[case.id]
     assert_no_traceback(group.text)
