@@ -17,7 +17,7 @@ from bench_matrix.data_readers import GROUPS, LABELS, npz_headers, read_npz, ref
 from bench_matrix.errors import UserError
 from bench_matrix.image_readers import first_class_image_size, read_class_folders, read_folders
 from bench_matrix.images import geometric, geometric_shape, in_layout, to_model_input
-from bench_matrix.matrix.spec import DatasetSpec, Preprocess
+from bench_matrix.matrix.spec import DatasetSpec, LabelSpec, Preprocess
 from bench_matrix.tensors import SINGLE, Inputs, TensorSpec, count, random_inputs, specs_to_list
 from bench_matrix.workspace import Workspace, digest, tree_sha256
 
@@ -232,6 +232,16 @@ def _normalise(labels: np.ndarray, columns: tuple[str, ...], spec: DatasetSpec) 
     if spec.labels.scale is not None:
         y = y / np.asarray(spec.labels.scale, np.float32)
     refuse_non_finite(y, f"{source(spec)}: labels after dataset.labels offset and scale", "sample")
+    return y
+
+
+def denormalise(y: np.ndarray, labels: LabelSpec) -> np.ndarray:
+    """Normalised labels (or a regression model's outputs) back in label units: y * scale + offset, the
+    inverse of the dataset's `labels` normalisation."""
+    if labels.scale is not None:
+        y = y * np.asarray(labels.scale, np.float32)
+    if labels.offset is not None:
+        y = y + np.asarray(labels.offset, np.float32)
     return y
 
 

@@ -1,4 +1,5 @@
-"""Run one job in its own process with a timeout; wait without polling while the child measures."""
+"""Run one job in its own process with a timeout; wait without polling while the child measures or waits for
+the machine's timing lock (that wait does not count against the timeout)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from bench_matrix.errors import UserError
+from bench_matrix.worker import WAITING_MARK
 
 TAIL_LINES = 12
 LONGEST_WAIT_S = 1e9  # ~31 years: a longer (or infinite) limit waits as long; keeps every timer representable
@@ -36,9 +38,10 @@ class Outcome:
 
 
 def run_job(job: Any, workdir: Path, log: Path, timeout_s: float, threads: int | None = None,
-            on_phase: Callable[[str], None] = lambda _: None, tick: Callable[[], None] = lambda: None) -> Outcome:
+            on_phase: Callable[[str], None] = lambda _: None,
+            tick: Callable[[], None] = lambda: None) -> Outcome:
     """Start `python -m bench_matrix.worker` on `job` (a typed job: its `mode` names the function that runs
-    it); kill its process group at `timeout_s`."""
+    it); kill its process group at `timeout_s`, not counting time it waits for the machine's timing lock."""
     if not timeout_s > 0:  # also NaN
         raise UserError(f"a time limit must be a positive number of seconds, got {timeout_s!r} "
                         f"(settings.timeout_s)")
@@ -54,13 +57,14 @@ def run_job(job: Any, workdir: Path, log: Path, timeout_s: float, threads: int |
     with open(log, "ab") as log_file:
         log_file.write(f"\n=== {job.mode} {time.strftime('%Y-%m-%d %H:%M:%S')} ===\n".encode())
         log_file.flush()
-        proc = subprocess.Popen([sys.executable, "-m", "bench_matrix.worker", str(job_path), str(result_path)],
-                                stdin=subprocess.DEVNULL,
+        proc = subprocess.Popen([sys.executable, "-m", "bench_matrix.worker", str(job_path),
+                                 str(result_path)], stdin=subprocess.DEVNULL,
                                 stdout=log_file, stderr=subprocess.STDOUT, pass_fds=(write_fd,), env=env,
                                 start_new_session=True)
     os.close(write_fd)
+    deadline = _Deadline(min(timeout_s, LONGEST_WAIT_S))
     try:
-        timed_out, last_phase = _wait(proc, read_fd, timeout_s, on_phase, tick)
+        timed_out, last_phase = _wait(proc, read_fd, deadline, on_phase, tick)
     except BaseException:  # Ctrl-C or any error in the parent: never leave a child measuring
         _kill_group(proc)
         raise
@@ -68,7 +72,9 @@ def run_job(job: Any, workdir: Path, log: Path, timeout_s: float, threads: int |
         os.close(read_fd)
     try:
         if timed_out:
-            return Outcome(error=f"timed out after {timeout_s:g} s (in phase '{last_phase}'); "
+            waited = (f", not counting {deadline.waited_s:.0f} s waiting for the timing lock"
+                      if deadline.waited_s else "")
+            return Outcome(error=f"timed out after {timeout_s:g} s (in phase '{last_phase}'{waited}); "
                                  f"raise settings.timeout_s if this cell needs longer. Log: {log}")
         if result_path.is_file():
             result = json.loads(result_path.read_text())
@@ -84,27 +90,54 @@ def run_job(job: Any, workdir: Path, log: Path, timeout_s: float, threads: int |
         result_path.unlink(missing_ok=True)
 
 
-def _wait(proc: subprocess.Popen, read_fd: int, timeout_s: float, on_phase: Callable[[str], None],
+class _Deadline:
+    """A job's time limit, paused while the job waits for the machine's timing lock (another run's timing)."""
+
+    def __init__(self, limit_s: float):
+        self.left_s = limit_s  # as of counting_since
+        self.counting_since = time.monotonic()
+        self.paused_at: float | None = None
+        self.waited_s = 0.0
+
+    def remaining(self) -> float | None:
+        """Seconds left; None while paused."""
+        return None if self.paused_at is not None else self.left_s - (time.monotonic() - self.counting_since)
+
+    def pause(self) -> None:
+        if self.paused_at is None:
+            self.paused_at = time.monotonic()
+            self.left_s -= self.paused_at - self.counting_since
+
+    def resume(self) -> None:
+        if self.paused_at is not None:
+            self.counting_since = time.monotonic()
+            self.waited_s += self.counting_since - self.paused_at
+            self.paused_at = None
+
+
+def _wait(proc: subprocess.Popen, read_fd: int, deadline: _Deadline, on_phase: Callable[[str], None],
           tick: Callable[[], None]) -> tuple[bool, str]:
-    """Block on the child's exit and phase messages; tick once a second except while it measures."""
+    """Block on the child's exit and phase lines; tick once a second except while it measures or waits for the
+    timing lock (then another run measures: no timer at all, the child's reminders wake us)."""
     pidfd = os.pidfd_open(proc.pid)
-    deadline = time.monotonic() + min(timeout_s, LONGEST_WAIT_S)
-    watched, phase = [pidfd, read_fd], "start"
+    watched, phase, pending = [pidfd, read_fd], "start", b""
     try:
         while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
+            remaining = deadline.remaining()
+            if remaining is not None and remaining <= 0:
                 _kill_group(proc)
                 return True, phase
-            wait = remaining if phase == "measure" else min(remaining, 1.0)
+            wait = remaining if phase == "measure" or remaining is None else min(remaining, 1.0)
             ready, _, _ = select.select(watched, [], [], wait)
             if read_fd in ready:
-                chunk = os.read(read_fd, 4096).decode(errors="replace")
-                if not chunk:
+                chunk = os.read(read_fd, 4096)
+                if not chunk:  # no phase can end a wait any more
                     watched.remove(read_fd)
-                for name in chunk.split():
-                    phase = name
-                    on_phase(name)
+                    deadline.resume()
+                *lines, pending = (pending + chunk).split(b"\n")
+                for line in lines:
+                    phase = _phase(line.decode(errors="replace"), deadline)
+                    on_phase(phase)
             if pidfd in ready:
                 proc.wait()
                 return False, phase
@@ -112,6 +145,15 @@ def _wait(proc: subprocess.Popen, read_fd: int, timeout_s: float, on_phase: Call
                 tick()
     finally:
         os.close(pidfd)
+
+
+def _phase(line: str, deadline: _Deadline) -> str:
+    """The phase a line names; a waiting line pauses the deadline, any other resumes it."""
+    if line.startswith(WAITING_MARK):
+        deadline.pause()
+        return line[len(WAITING_MARK):]
+    deadline.resume()
+    return line
 
 
 def _kill_group(proc: subprocess.Popen) -> None:

@@ -11,10 +11,11 @@ from typing import Any
 
 from bench_matrix import __version__, data
 from bench_matrix.backends.registry import available
-from bench_matrix.cell import Cell, CellPlan
+from bench_matrix.cell import Cell, CellPlan, ClosedLoopPlan
 from bench_matrix.errors import MatrixError, UserError
 from bench_matrix.jobs import ProbeJob
 from bench_matrix.launcher import run_job
+from bench_matrix.matrix.closed_loop import drive_problem
 from bench_matrix.matrix.expand import Verdict, combinations, plan, training_key, verdict_key
 from bench_matrix.matrix.spec import DatasetSpec, Matrix, ModelSpec
 from bench_matrix.matrix.yamlpos import format_path
@@ -74,9 +75,20 @@ def resolve(matrix: Matrix, workspace: Workspace) -> Plan:
     models = {m.name: _model_plan(matrix, m, probed["inputs"], baselines, workspace) for m in matrix.models}
     _check_models(matrix, models)
     prints = Fingerprints(matrix, probed["backends"])
-    decided = tuple(replace(p, log=workspace.cell_log(p.cell.key), fingerprint=prints.cell(p))
-                    for p in expansion.cells)
+    driven = (replace(p, log=workspace.cell_log(p.cell.key), closed_loop=closed_loop_plan(matrix, p.cell))
+              for p in expansion.cells)
+    decided = tuple(replace(p, fingerprint=prints.cell(p)) for p in driven)
     return Plan(matrix, decided, models, excluded, probed["backends"])
+
+
+def closed_loop_plan(matrix: Matrix, cell: Cell) -> ClosedLoopPlan | None:
+    """The cell's laps when the closed_loop section selects it (with why its model cannot drive, if so)."""
+    spec = matrix.closed_loop
+    if spec is None or not spec.selects(cell.as_dict()):
+        return None
+    model = matrix.model(cell.model)
+    dataset = matrix.dataset_of(model)
+    return ClosedLoopPlan(spec, dataset.labels, drive_problem(model, dataset, matrix.task_of(model)))
 
 
 def _model_plan(matrix: Matrix, model: ModelSpec, read: dict[str, Any], baselines: dict[str, str],
@@ -149,7 +161,8 @@ class Fingerprints:
                        "strategy": m.strategies[cell.strategy].to_dict(),
                        "settings": {k: v for k, v in m.settings.to_dict().items()
                                     if k not in ("timeout_s", "passes")},  # neither changes what is measured
-                       "metrics": list(m.metrics), "version": __version__})
+                       "metrics": list(m.metrics), "version": __version__,
+                       **({"closed_loop": planned.closed_loop.fingerprint()} if planned.closed_loop else {})})
 
     def model(self, model: ModelSpec) -> dict[str, Any]:
         portable = asdict(model)

@@ -33,14 +33,17 @@ def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, res
     runner = Runner(plan, ws, store, console) if store else None
     cells = [p for p in plan.cells if filters.keep(p.cell)]
     table = Table(title=f"cells of {plan.matrix.path}")
-    for column in ("model", "backend", "strategy", "precision", "target", "state", "reason"):
+    driving = plan.matrix.closed_loop is not None
+    for column in ("model", "backend", "strategy", "precision", "target", "state", "reason",
+                   *(("closed loop",) if driving else ())):
         table.add_column(column, overflow="fold")
     counts = {"run": 0, "stored": 0, "skip": 0, "invalid": 0}
     for p in sorted((p for p in cells if p.state != "invalid"), key=lambda p: (p.state, p.cell)):
         state = "stored" if p.state == "run" and runner and runner.is_done(p) else p.state
         counts[state] += 1
         c = p.cell
-        table.add_row(c.model, c.backend, c.strategy, c.precision, c.target, STATE_STYLE[state], escape(p.reason or ""))
+        table.add_row(c.model, c.backend, c.strategy, c.precision, c.target, STATE_STYLE[state],
+                      escape(p.reason or ""), *((_laps(p),) if driving else ()))
     console.print(table)
     invalid = [p for p in cells if p.state == "invalid"]
     counts["invalid"] = len(invalid)
@@ -50,6 +53,16 @@ def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, res
                   f"{counts['invalid']} not valid, {plan.excluded} removed by exclude")
     if store:
         store.close()
+
+
+def _laps(p: CellPlan) -> str:
+    """What the cell drives after its offline measurement: circuits × modes, or why it cannot drive."""
+    if p.closed_loop is None:
+        return "—"
+    if p.closed_loop.skip:
+        return f"[yellow]not driven:[/] {escape(p.closed_loop.skip)}"
+    spec = p.closed_loop.spec
+    return f"{', '.join(c.name for c in spec.circuits)} × {', '.join(spec.modes)}"
 
 
 def _invalid_table(invalid: list[CellPlan], show_all: bool) -> Table:

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                           TimeRemainingColumn)
 
 from bench_matrix.cell import Cell
 from bench_matrix.store import CellRecord
@@ -35,7 +36,8 @@ class RunProgress:
         self._progress.refresh()
 
     def phase(self, name: str) -> None:
-        self._progress.update(self._task, description=f"{self._current} · {name}")
+        """A phase of the current step began, or its job waits for the timing lock (naming the holder)."""
+        self._progress.update(self._task, description=f"{self._current} · {escape(name)}")
         self._progress.refresh()
 
     def tick(self) -> None:
@@ -55,8 +57,8 @@ class RunProgress:
         for reason, cells in groups.items():
             backends = ", ".join(dict.fromkeys(c.backend for c in cells))
             targets = ", ".join(dict.fromkeys(c.target for c in cells))
-            self._progress.console.print(f"[yellow]–[/] skipped {len(cells)} cell(s) of {escape(backends)} on "
-                                         f"{escape(targets)}: {escape(reason)}")
+            self._progress.console.print(f"[yellow]–[/] skipped {len(cells)} cell(s) of {escape(backends)} "
+                                         f"on {escape(targets)}: {escape(reason)}")
         self._progress.refresh()
 
 
@@ -70,6 +72,15 @@ def _accuracy(metrics: dict) -> str:
     return "" if cosine is None else f"cosine {cosine:.6f}"
 
 
+def _disturbed(metrics: dict) -> str:
+    """A mark for a cell whose timing stayed disturbed by other work after its re-measurements."""
+    interference = metrics.get("interference") or {}  # none in records stored before it was measured
+    if not interference.get("flagged"):
+        return ""
+    reason = interference.get("reason")
+    return f"  [yellow]~ disturbed{f': {escape(reason)}' if reason else ''}[/]"
+
+
 def describe(record: CellRecord) -> str:
     """One line: status mark, cell, and its headline numbers or reason."""
     cell: Cell = record.cell
@@ -78,8 +89,10 @@ def describe(record: CellRecord) -> str:
         m = record.metrics
         passes = m.get("latency_passes_p50", [])
         per_pass = f"  (p50 per pass: {', '.join(f'{p:.3g}' for p in passes)} ms)" if len(passes) > 1 else ""
-        return (f"[green]✓[/] {name}  p50 {m['latency_ms']['p50']:.3g} ms  p99 {m['latency_ms']['p99']:.3g} ms  "
-                f"{m['throughput_sps']:.0f} samples/s  {_accuracy(m)}  {m['size_bytes'] / 2**20:.2f} MiB{per_pass}")
+        latency = m["latency_ms"]
+        return (f"[green]✓[/] {name}  p50 {latency['p50']:.3g} ms  p99 {latency['p99']:.3g} ms"
+                f"  {m['throughput_sps']:.0f} samples/s  {_accuracy(m)}  {m['size_bytes'] / 2**20:.2f} MiB"
+                f"{per_pass}{_disturbed(m)}")
     lines = (record.reason or "").strip().splitlines()
     mark = "[yellow]–[/] skipped" if record.status == "skipped" else "[red]✗[/] failed"
     return f"{mark} {escape(name)}: {escape(lines[0] if lines else '')}"

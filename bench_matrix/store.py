@@ -1,21 +1,25 @@
-"""ResultStore: SQLite file holding one record per cell (written as each cell ends) and run facts."""
+"""ResultStore: SQLite file holding one record per cell (written as each cell ends), the raw latencies of
+each ok cell, and run facts."""
 
 from __future__ import annotations
 
 import json
 import os
 import sqlite3
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
+
 from bench_matrix.cell import Cell
 from bench_matrix.errors import UserError
+from bench_matrix.measure.stats import unpack_samples
 from bench_matrix.workspace import not_regular
 
-STORE_VERSION = 1  # PRAGMA user_version of a results file; 0 (unset) is the same format
+STORE_VERSION = 1  # PRAGMA user_version of a results file; 0 (unset) is the same; `samples` is an added table
 SQLITE_MAGIC = b"SQLite format 3\0"
 Status = Literal["ok", "skipped", "failed"]
 _SCHEMA = """
@@ -27,6 +31,8 @@ CREATE TABLE IF NOT EXISTS results (
 );
 CREATE TABLE IF NOT EXISTS facts (scope TEXT NOT NULL, name TEXT NOT NULL, value TEXT NOT NULL,
                                   PRIMARY KEY (scope, name));
+CREATE TABLE IF NOT EXISTS samples (key TEXT NOT NULL, series TEXT NOT NULL, data BLOB NOT NULL,
+                                    PRIMARY KEY (key, series));
 """
 
 
@@ -95,7 +101,9 @@ class ResultStore:
     def close(self) -> None:
         self._db.close()
 
-    def put(self, record: CellRecord) -> None:
+    def put(self, record: CellRecord, samples: Mapping[str, bytes] | None = None) -> None:
+        """Write a record; with `samples` (series name -> stats.pack_samples bytes) replace its raw latencies
+        in the same transaction. Without, an ok record keeps the stored ones; any other status drops them."""
         c = record.cell
         with self._errors("cannot write a result"), self._db:
             self._db.execute(
@@ -103,6 +111,20 @@ class ResultStore:
                 (c.key, record.fingerprint, record.matrix, c.model, c.framework, c.backend, c.strategy,
                  c.precision, c.target, record.status, record.reason, json.dumps(record.metrics),
                  record.artifact_path, json.dumps(record.env), record.started_at, record.finished_at))
+            if samples is not None or record.status != "ok":
+                self._db.execute("DELETE FROM samples WHERE key = ?", (c.key,))
+            self._db.executemany("INSERT INTO samples VALUES (?,?,?)",
+                                 [(c.key, series, blob) for series, blob in (samples or {}).items()])
+
+    def samples(self, cell: Cell, series: str = "latency_ms") -> np.ndarray | None:
+        """The cell's raw per-iteration latencies in ms (float32, in timing order) of `series` ("latency_ms",
+        or "latency_ms_e2e" on a GPU); None when none are stored (older stores, skipped or failed cells)."""
+        if self._empty or "samples" not in _tables(self._db):
+            return None
+        with self._errors("cannot read results"):
+            row = self._db.execute("SELECT data FROM samples JOIN results USING (key) WHERE key = ? AND "
+                                   "series = ? AND status = 'ok'", (cell.key, series)).fetchone()
+        return unpack_samples(row[0]) if row else None
 
     def get(self, cell: Cell) -> CellRecord | None:
         if self._empty:

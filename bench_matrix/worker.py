@@ -1,5 +1,5 @@
-"""Entry point of every child process: `python -m bench_matrix.worker JOB.pickle RESULT.json` runs one typed job
-and writes its outcome."""
+"""Entry point of every child process: `python -m bench_matrix.worker JOB.pickle RESULT.json` runs one typed
+job and writes its outcome."""
 
 from __future__ import annotations
 
@@ -16,14 +16,23 @@ from pathlib import Path
 from bench_matrix.errors import UserError
 
 
+WAITING_MARK = "waiting:"  # a phase line starting with it: the job waits for the machine's timing lock
+
+
 def phase(name: str) -> None:
-    """Tell the parent which phase began (it stays silent while we measure)."""
+    """Tell the parent which phase began (it stays silent while we measure); one line per phase."""
     fd = os.environ.get("BENCH_MATRIX_PHASE_FD")
     if fd:
         try:
-            os.write(int(fd), f"{name}\n".encode())
+            os.write(int(fd), f"{' '.join(name.split())}\n".encode())
         except OSError:
             pass
+
+
+def waiting(message: str) -> None:
+    """Tell the parent we wait for the timing lock (`timing_slot`'s on_wait): its time limit stops counting
+    until the next `phase()`, which the job sends once it holds the slot."""
+    phase(WAITING_MARK + message)
 
 
 def die_with_parent() -> None:

@@ -3,13 +3,11 @@ backend source with its reference outputs, and a CLI runner."""
 
 from __future__ import annotations
 
+import hashlib
 import os
 import subprocess
 import sys
 from pathlib import Path
-
-import hashlib
-
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -25,6 +23,14 @@ import tiny_models  # noqa: E402
 TINY_X = tiny_models.images(16, 2)  # the inputs the `reference` outputs belong to
 FAST_SETTINGS = ("settings: {min_iterations: 5, min_time_s: 0.02, warmup_iterations: 2, warmup_s: 0.0, "
                  "throughput_time_s: 0.02, batch_size: 8, timeout_s: 120}\n")
+
+
+
+@pytest.fixture(scope="session", autouse=True)
+def own_timing_lock(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """The suite's runs share a timing lock of their own, not the host's: a run measuring elsewhere on this
+    machine must not make a test wait."""
+    os.environ["BENCH_MATRIX_LOCK_DIR"] = str(tmp_path_factory.mktemp("timing-lock"))
 
 
 @pytest.fixture

@@ -8,9 +8,14 @@ import time
 import numpy as np
 import pytest
 
+from bench_matrix.measure import timing
+from bench_matrix.measure.interference import Limits
 from bench_matrix.measure.size import artifact_size
 from bench_matrix.measure.stats import latency_summary
 from bench_matrix.measure.timing import LoopSettings, drift, steady_time_calls, throughput, time_calls
+
+INF = float("inf")
+NO_LIMITS = Limits(other_share=INF, machine_share=INF, steal_share=INF)  # only drift makes a window unclean
 
 
 def test_latency_summary_percentiles_and_units():
@@ -22,6 +27,9 @@ def test_latency_summary_percentiles_and_units():
     assert s["p90"] == pytest.approx(90.1)
     assert s["p99"] == pytest.approx(99.01)
     assert s["std"] == pytest.approx(np.std(np.arange(1, 101), ddof=1))
+    assert s["p50_ci"] == [40.0, 61.0]  # the 40th and 61st of 100 ordered values (binomial table)
+    assert s["p50_ci_rel"] == pytest.approx(21 / 50.5)
+    assert latency_summary(np.arange(1, 6) * 1_000_000)["p50_ci"] is None  # n = 5: no 95 % interval exists
 
 
 def test_latency_summary_rejects_empty():
@@ -83,14 +91,63 @@ def test_drift_is_zero_for_steady_and_large_for_a_step():
     assert drift(step) == pytest.approx(0.5 / 1.25)
 
 
-def test_steady_time_calls_repeats_an_unsteady_measurement_and_keeps_the_steadiest():
+def test_steady_time_calls_repeats_a_drifting_measurement_and_keeps_the_clean_one(monkeypatch):
+    monkeypatch.setattr(timing, "RETRY_PAUSE_S", 0.0)
     calls = {"n": 0}
 
     def call(_):
         calls["n"] += 1
-        time.sleep(0.004 if 10 <= calls["n"] <= 20 else 0.001)  # interference in the middle of attempt 1
+        time.sleep(0.004 if 10 <= calls["n"] <= 20 else 0.001)  # a slow spell in the middle of attempt 1
+
+    settings = LoopSettings(0, 0.0, min_iterations=40, min_time_s=0.0, max_time_s=5)
+    phase = steady_time_calls(call, [None], settings, NO_LIMITS, attempts=3)
+    assert len(phase.attempts) == 2 and phase.kept == 1 and phase.attempts[1].clean
+    assert "chunk medians drifted" in phase.attempts[0].unsteady and phase.attempts[0].disturbed is None
+    assert drift(phase.result) <= timing.DRIFT_LIMIT and np.median(phase.result) < 2_500_000
+
+
+def test_a_phase_disturbed_in_every_attempt_keeps_the_lowest_median_and_says_why(monkeypatch):
+    monkeypatch.setattr(timing, "RETRY_PAUSE_S", 0.0)
+    sleeps = iter([0.003] * 20 + [0.001] * 20 + [0.002] * 20)  # three attempts, the second the fastest
+
+    def call(_):
+        time.sleep(next(sleeps))
 
     settings = LoopSettings(0, 0.0, min_iterations=20, min_time_s=0.0, max_time_s=5)
-    durations, info = steady_time_calls(call, [None], settings, tolerance=0.2, attempts=3)
-    assert info["latency_attempts"] == 2 and info["latency_stability"] <= 0.2
-    assert np.median(durations) < 2_500_000  # the kept attempt is the steady, fast one
+    strict = Limits(other_share=-1.0, machine_share=INF, steal_share=INF)  # every window counts as disturbed
+    phase = steady_time_calls(call, [None], settings, strict, attempts=3)
+    assert len(phase.attempts) == 3 and phase.kept == 1
+    assert "of the measuring CPU(s) (limit -100%)" in phase.disturbed
+    record = timing.interference_record({"latency": phase}, strict)
+    assert record["flagged"] is True and record["reason"].startswith("latency: other processes took")
+    assert record["phases"]["latency"]["kept"] == 1 and len(record["phases"]["latency"]["attempts"]) == 3
+    assert set(record["phases"]["latency"]["attempts"][0]) >= {
+        "p50_ms", "p99_ms", "n", "other_share", "machine_share", "steal_share", "preemptions_per_s", "wall_s",
+        "disturbed", "unsteady"}
+
+
+def test_drift_alone_re_measures_but_never_flags(monkeypatch):
+    monkeypatch.setattr(timing, "RETRY_PAUSE_S", 0.0)
+    sleeps = iter(([0.001] * 10 + [0.003] * 10) * 3)  # every attempt slows down half-way
+
+    def call(_):
+        time.sleep(next(sleeps))
+
+    settings = LoopSettings(0, 0.0, min_iterations=20, min_time_s=0.0, max_time_s=5)
+    phase = steady_time_calls(call, [None], settings, NO_LIMITS, attempts=3)
+    assert len(phase.attempts) == 3 and all(a.unsteady and a.disturbed is None for a in phase.attempts)
+    assert phase.disturbed is None
+    assert timing.interference_record({"latency": phase}, NO_LIMITS)["flagged"] is False
+
+
+def test_time_calls_goes_on_until_the_median_interval_is_narrow():
+    durations = iter(np.tile([0.0005, 0.003], 10_000))  # two modes: the median's interval spans both
+
+    def call(_):
+        time.sleep(next(durations))
+
+    wide = LoopSettings(0, 0.0, min_iterations=20, min_time_s=0.0, max_time_s=0.3, ci_rel_width=0.05)
+    timed = time_calls(call, [None], wide)
+    assert timed.sum() >= 0.3e9 * 0.95 and len(timed) > 20  # never narrow: ran up to max_time_s
+    loose = LoopSettings(0, 0.0, min_iterations=20, min_time_s=0.0, max_time_s=0.3, ci_rel_width=1.0)
+    assert len(time_calls(lambda _: time.sleep(0.001), [None], loose)) == 20  # narrow at once: the minimum

@@ -219,7 +219,7 @@ def test_not_a_store(tmp_path: Path) -> None:
         write_report(path, "md", tmp_path, _console())
 
 
-def test_unsteady_latency_is_marked(tmp_path: Path) -> None:
+def test_unsteady_latency_of_a_record_before_interference_was_measured_is_marked(tmp_path: Path) -> None:
     path = tmp_path / "r.sqlite"
     store = ResultStore(path)
     store.put(_record(PILOT_BASE, metrics={"latency_ms": {"p50": 2.0}, "latency_stability": 0.01}, env={}))
@@ -227,6 +227,60 @@ def test_unsteady_latency_is_marked(tmp_path: Path) -> None:
     store.close()
     page = write_report(path, "md", tmp_path / "md", _console())[1].read_text()
     assert "| 1.00 ~ |" in page and "| 2.00 |" in page
+    drifted = "onnxruntime none fp32: latency: chunk medians drifted by 30% (limit 5%)"
+    assert f"> **Unsteady (~):** {drifted}" in page and "> **Disturbed" not in page
+
+
+WHY = "other processes took 45% of the measuring CPU(s) (limit 10%)"
+DRIFT = "chunk medians drifted by 12% (limit 5%)"
+
+
+def _attempt(other_share: float, unsteady: str | None = None) -> dict[str, Any]:
+    return {"wall_s": 2.0, "other_share": other_share, "machine_share": other_share / 2, "steal_share": 0.0,
+            "preemptions_per_s": 3.0, "disturbed": WHY if other_share > 0.1 else None, "unsteady": unsteady}
+
+
+def _timed(p50: float, latency: dict[str, Any]) -> dict[str, Any]:
+    """Metrics with a confidence interval and an interference record holding these latency attempts."""
+    kept = latency["attempts"][latency["kept"]]
+    metrics = _metrics(p50, 1.0, 0.01)
+    metrics["latency_ms"].update(p50_ci=[p50 * 0.99, p50 * 1.03], p50_ci_rel=0.04)
+    metrics["interference"] = {
+        "flagged": bool(kept["disturbed"]), "reason": f"latency: {WHY}" if kept["disturbed"] else None,
+        "phases": {"latency": latency, "throughput": {"attempts": [_attempt(0.0)], "kept": 0}}}
+    return metrics
+
+
+def test_a_cell_flagged_for_interference_is_marked_in_every_format(tmp_path: Path) -> None:
+    path = tmp_path / "r.sqlite"
+    store = ResultStore(path)
+    clean = {"attempts": [_attempt(0.45), _attempt(0.01)], "kept": 1}  # re-measured, then clean
+    store.put(_record(PILOT_BASE, metrics=_timed(2.0, clean)))
+    store.put(_record(PILOT_ORT, metrics=_timed(1.0, {"attempts": [_attempt(0.45)] * 3, "kept": 2})))
+    unsteady = [_attempt(0.45), _attempt(0.0, DRIFT), _attempt(0.0, DRIFT)]
+    store.put(_record(PILOT_PTQ, metrics=_timed(0.5, {"attempts": unsteady, "kept": 1})))
+    store.close()
+    page = write_report(path, "md", tmp_path / "md", _console())[1].read_text()
+    reason = f"{WHY} (3 attempts, none clean)"
+    assert f"> **Disturbed (~):** onnxruntime none fp32: latency: {reason}" in page
+    drifting = f"onnxruntime ptq_dynamic int8: latency: {DRIFT} (3 attempts, none clean)"
+    assert f"> **Unsteady (~):** {drifting}" in page
+    assert "| 1.00 ~ | 2.0 | 1.50 ~ | 2.00 ~ | 8000 |" in page  # latency figures marked, throughput clean
+    assert "| 0.500 ~ | 2.0 | 0.750 ~ | 1.00 ~ | 16000 |" in page
+    assert "| 2.00 | 2.0 | 3.00 | 4.00 | 4000 |" in page  # re-measured clean: no mark; CI ±2 %
+    assert "p50 CI ±%" in page
+    console = _console()
+    write_report(path, "table", tmp_path / "md", console)
+    assert f"Disturbed (~): onnxruntime none fp32: latency: {reason}" in console.export_text()
+    (csv_path,) = write_report(path, "csv", tmp_path / "csv", _console())
+    with csv_path.open(newline="") as handle:
+        rows = {row["key"]: row for row in csv.DictReader(handle)}
+    flagged, clean, drifting = rows[PILOT_ORT.key], rows[PILOT_BASE.key], rows[PILOT_PTQ.key]
+    assert (flagged["interference_flagged"], flagged["interference_reason"]) == ("true", f"latency: {reason}")
+    assert (clean["interference_flagged"], clean["interference_reason"]) == ("false", "")
+    assert drifting["interference_flagged"] == "false"  # unsteady, not disturbed
+    assert float(clean["latency_p50_ci_low_ms"]) == pytest.approx(1.98)
+    assert float(clean["latency_p50_ci_high_ms"]) == pytest.approx(2.06)
 
 
 def test_the_environment_names_every_backends_libraries_plugins_included():

@@ -6,10 +6,12 @@ import os
 import sqlite3
 from contextlib import closing
 
+import numpy as np
 import pytest
 
 from bench_matrix.cell import Cell
 from bench_matrix.errors import UserError
+from bench_matrix.measure.stats import pack_samples
 from bench_matrix.store import CellRecord, ResultStore
 
 CELL = Cell("m", "pytorch", "onnxruntime", "none", "fp32", "cpu")
@@ -89,3 +91,42 @@ def test_what_is_not_a_results_file_is_refused_unopened(tmp_path, make, message)
     for readonly in (True, False):
         with pytest.raises(UserError, match=rf"results file .*r.sqlite: {message}"):
             ResultStore(tmp_path / "r.sqlite", readonly=readonly)
+
+
+def test_raw_samples_round_trip_and_follow_their_record(tmp_path):
+    path = tmp_path / "r.sqlite"
+    store = ResultStore(path)
+    durations = np.array([1_250_000, 1_300_000, 2_000_000, 1_100_000])
+    store.put(CellRecord(CELL, "ok", fingerprint="f"), {"latency_ms": pack_samples(durations)})
+    store.close()
+    again = ResultStore(path, readonly=True)
+    assert again.samples(CELL).tolist() == pytest.approx([1.25, 1.3, 2.0, 1.1])  # ms, in timing order
+    assert again.samples(CELL, "latency_ms_e2e") is None
+    assert "samples" not in again.get(CELL).to_json()["metrics"]  # records (and report json) stay small
+    again.close()
+    store = ResultStore(path)
+    store.put(CellRecord(CELL, "ok", fingerprint="f", metrics={"latency_passes_p50": [1.2, 1.4]}))
+    assert len(store.samples(CELL)) == 4  # an ok record written without samples keeps the stored ones
+    store.put(CellRecord(CELL, "failed", reason="boom"))
+    assert store.samples(CELL) is None  # a failed record has none
+    store.close()
+
+
+def test_a_store_written_before_samples_opens_and_gains_the_table(tmp_path):
+    path = tmp_path / "old.sqlite"
+    store = ResultStore(path)
+    store.put(CellRecord(CELL, "ok", fingerprint="f"))
+    store.close()
+    with closing(sqlite3.connect(path)) as db:
+        db.execute("DROP TABLE samples")  # what bench-matrix wrote before raw samples were kept
+        db.commit()
+    reader = ResultStore(path, readonly=True)
+    assert reader.get(CELL).status == "ok" and reader.samples(CELL) is None
+    reader.close()
+    writer = ResultStore(path)
+    assert writer.samples(CELL) is None
+    writer.put(CellRecord(CELL, "ok", fingerprint="g"), {"latency_ms": pack_samples(np.array([5_000_000]))})
+    assert writer.samples(CELL).tolist() == [5.0]  # the table was added in place: same results format version
+    writer.close()
+    with closing(sqlite3.connect(path)) as db:
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 1

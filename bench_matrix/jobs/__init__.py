@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-from bench_matrix.cell import Cell
+from bench_matrix.cell import Cell, ClosedLoopPlan
 from bench_matrix.matrix.expand import TrainingKey, VerdictKey
 from bench_matrix.matrix.spec import DatasetSpec, ModelSpec, Preprocess, Settings, StrategySpec
 from bench_matrix.sources import SourceModel
@@ -96,7 +96,8 @@ class ConvertJob(Job):
 
 @dataclass(frozen=True)
 class MeasureJob(Job):
-    """Load an artifact, time it, evaluate it against the labels and the baseline's outputs."""
+    """Load an artifact, time it, evaluate it against the labels and the baseline's outputs (and drive laps
+    with it when `closed_loop` says so)."""
 
     mode = "bench_matrix.jobs.cell:measure"
     cell: Cell
@@ -111,3 +112,4 @@ class MeasureJob(Job):
     reference: Path | None
     metrics: tuple[str, ...] = ()
     finetune: dict[str, Any] | None = None
+    closed_loop: ClosedLoopPlan | None = None  # laps to drive with the loaded session, after the evaluation

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import base64
 import hashlib
 import resource
 import time
@@ -13,17 +14,31 @@ from bench_matrix import data, hardware
 from bench_matrix.backends.registry import load_backend
 from bench_matrix.jobs import ConvertJob, MeasureJob
 from bench_matrix.jobs.artifact import ensure_artifact, predict_all
+from bench_matrix.jobs.closed_loop import drive_all
+from bench_matrix.matrix.spec import Settings
 from bench_matrix.measure import env as environment
+from bench_matrix.measure.affinity import pin_threads
 from bench_matrix.measure.gpu import GpuMemory
+from bench_matrix.measure.interference import Limits
+from bench_matrix.measure.machine_lock import timing_slot
 from bench_matrix.measure.metrics import evaluate, non_finite_reason
 from bench_matrix.measure.size import artifact_size
-from bench_matrix.measure.stats import latency_summary
-from bench_matrix.measure.timing import LoopSettings, steady_time_calls, throughput
+from bench_matrix.measure.stats import latency_summary, pack_samples
+from bench_matrix.measure.timing import (
+    LoopSettings,
+    Phase,
+    drift,
+    interference_record,
+    steady_throughput,
+    steady_time_calls,
+)
 from bench_matrix.tensors import bind, resize, take
-from bench_matrix.worker import phase
+from bench_matrix.worker import phase, waiting
 
 LATENCY_INPUTS = 16
 GPU_TARGETS = ("cuda", "tensorrt")  # timed compute-only and end to end; GPU name and memory recorded
+LIMITS = Limits()  # interference above these re-measures a timed phase, then flags the cell
+SAMPLED = {"latency_ms": "latency", "latency_ms_e2e": "latency_e2e"}  # stored raw series: its timed phase
 
 
 class NonFiniteOutputs(Exception):
@@ -39,7 +54,8 @@ def convert(job: ConvertJob) -> dict[str, Any]:
 
 
 def measure(job: MeasureJob) -> dict[str, Any]:
-    """Load, time at batch 1, time throughput, record peak memory, then evaluate the outputs."""
+    """Pin, load, time at batch 1 and throughput holding the machine's timing slot, record peak memory, then
+    evaluate the outputs; the raw latencies come back packed (base64) under "samples"."""
     cell, settings, prepared = job.cell, job.settings, job.data
     backend = load_backend(cell.backend)
     few, _ = data.load_split(prepared.directory, "test", prepared.preprocess, job.layout,
@@ -47,6 +63,7 @@ def measure(job: MeasureJob) -> dict[str, Any]:
     few = bind(few, job.source.inputs)
     on_gpu = cell.target in GPU_TARGETS
     gpu_memory = GpuMemory() if on_gpu else None  # before the load: the fallback reading subtracts this
+    cpus = pin_threads(settings.threads)  # before the load, so the runtime's threads inherit the affinity
     phase("load")
     begin = time.perf_counter()
     session = backend.load(job.artifact_dir / "model", job.manifest["meta"], cell.target, cell.precision,
@@ -55,32 +72,62 @@ def measure(job: MeasureJob) -> dict[str, Any]:
     hosts = [take(few, slice(i, i + 1)) for i in range(min(LATENCY_INPUTS, len(next(iter(few.values())))))]
     singles = [session.prepare(h) for h in hosts]
     batch = session.prepare(resize(few, settings.batch_size))
-    loop = LoopSettings(settings.warmup_iterations, settings.warmup_s, settings.min_iterations,
-                        settings.min_time_s, settings.max_time_s)
-    phase("measure")
-    durations, stability = steady_time_calls(session.execute, singles, loop)
-    gpu: dict[str, Any] = {}
-    if on_gpu:  # end to end: from host arrays, both copies and fetch inside the clock
-        gpu["latency_ms_e2e"] = latency_summary(steady_time_calls(session.predict, hosts, loop)[0])
-    rate = throughput(session.execute, batch, settings.batch_size, settings.throughput_time_s)
+    with timing_slot(f"{job.workspace.root} · {cell.model} · {cell.label}", on_wait=waiting) as window:
+        phase("measure")
+        phases = _timed_phases(session, singles, hosts, batch, settings, on_gpu)
+    timing = {**_timing_metrics(phases), "timing_window": window.as_dict(), "cpu_affinity": cpus}
     peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     phase("evaluate")
     x, y = data.load_split(prepared.directory, "test", prepared.preprocess, job.layout, settings.eval_samples)
     outputs = predict_all(session, bind(x, job.source.inputs), settings.batch_size)
     if reason := non_finite_reason(outputs):
         raise NonFiniteOutputs(f"the cell's outputs on the test split are not finite: {reason}")
+    gpu: dict[str, Any] = {}
     if gpu_memory is not None:
         gpu.update(gpu_name=hardware.gpus()[0].name if hardware.gpus() else None, **gpu_memory.peak())
     reference = _reference(job)
     metrics = {**artifact_size(job.artifact_dir / "model", job.artifact_dir / "size.json"),
                "params": job.manifest["params"], **evaluate(job.task, outputs, y, reference, job.metrics),
-               "outputs_sha256": outputs_digest(outputs), "latency_ms": latency_summary(durations), **gpu,
-               **stability, **rate, "batch_size": settings.batch_size, "peak_rss_mb": round(peak_rss_mb, 1),
-               "convert_s": job.manifest["convert_s"], "load_s": load_s, "threads": settings.threads,
-               "artifact_cached": job.cached, "session": session.info(), "test_samples": int(len(outputs[0])),
+               "outputs_sha256": outputs_digest(outputs), **timing, **gpu, "batch_size": settings.batch_size,
+               "peak_rss_mb": round(peak_rss_mb, 1), "convert_s": job.manifest["convert_s"], "load_s": load_s,
+               "threads": settings.threads, "artifact_cached": job.cached, "session": session.info(),
+               "test_samples": int(len(outputs[0])),
                **_finetune_metrics(job.finetune, job.manifest["convert_s"])}
-    return {"metrics": metrics, "env": {**environment.capture(), "backend_versions": backend.versions(),
-                                        "runtime": session.info()}}
+    if job.closed_loop is not None:  # laps with this session, after every timed loop (docs/closed-loop.md)
+        metrics.update(drive_all(session, job))
+    env = {**environment.capture(), "backend_versions": backend.versions(), "runtime": session.info()}
+    return {"metrics": metrics, "samples": _packed(phases), "env": env}
+
+
+def _timed_phases(session: Any, singles: list[Any], hosts: list[Any], batch: Any, settings: Settings,
+                  on_gpu: bool) -> dict[str, Phase[Any]]:
+    """Latency at batch 1 (and end to end on a GPU), then throughput; each re-measured while disturbed."""
+    loop = LoopSettings(settings.warmup_iterations, settings.warmup_s, settings.min_iterations,
+                        settings.min_time_s, settings.max_time_s, settings.ci_rel_width)
+    phases: dict[str, Phase[Any]] = {"latency": steady_time_calls(session.execute, singles, loop, LIMITS)}
+    if on_gpu:  # end to end: from host arrays, both copies and fetch inside the clock
+        phases["latency_e2e"] = steady_time_calls(session.predict, hosts, loop, LIMITS)
+    phases["throughput"] = steady_throughput(session.execute, batch, settings.batch_size,
+                                             settings.throughput_time_s, LIMITS)
+    return phases
+
+
+def _timing_metrics(phases: dict[str, Phase[Any]]) -> dict[str, Any]:
+    """The latency statistics (with their confidence intervals), throughput and the interference record."""
+    latency = phases["latency"]
+    timing = {"latency_ms": latency_summary(latency.result),
+              "latency_stability": round(drift(latency.result), 4), "latency_attempts": len(latency.attempts),
+              **phases["throughput"].result,
+              "interference": interference_record(phases, LIMITS)}
+    if "latency_e2e" in phases:
+        timing["latency_ms_e2e"] = latency_summary(phases["latency_e2e"].result)
+    return timing
+
+
+def _packed(phases: dict[str, Phase[Any]]) -> dict[str, str]:
+    """The kept raw latencies of each sampled series, as base64 of pack_samples (compact inside the JSON)."""
+    return {name: base64.b64encode(pack_samples(phases[timed].result)).decode()
+            for name, timed in SAMPLED.items() if timed in phases}
 
 
 def _reference(job: MeasureJob) -> list[np.ndarray] | None:

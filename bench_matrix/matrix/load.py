@@ -11,6 +11,7 @@ import jsonschema
 
 from bench_matrix.errors import MatrixError
 from bench_matrix.matrix import load_data, paths
+from bench_matrix.matrix.closed_loop import closed_loop
 from bench_matrix.matrix.schema import (
     BUILTIN_FRAMEWORKS,
     BUILTIN_MODELS,
@@ -194,11 +195,13 @@ def _build(path: Path, data: dict[str, Any], lines: dict, report: Located, backe
     for section in ("include", "exclude"):
         selectors[section] = tuple(_selector(section, i, s, known, report) for i, s in enumerate(data.get(section, [])))
     _check_metrics(data.get("metrics", []), report)
+    closed = closed_loop(data.get("closed_loop"), models, dataset, known, report)
     options = {name: dict(given) for name, given in data.get("backend_options", {}).items()}
     return Matrix(path=path, name=data.get("name", path.stem), models=models, dataset=dataset,
                   strategies=strategies, axes=axes, include=selectors["include"],
                   exclude=selectors["exclude"], settings=Settings(**data.get("settings", {})),
-                  backend_options=options, metrics=tuple(data.get("metrics", ())), lines=lines)
+                  backend_options=options, metrics=tuple(data.get("metrics", ())), closed_loop=closed,
+                  lines=lines)
 
 
 def _pluggable(axis: str, vocabulary: Vocabulary | None) -> list[str]:

@@ -9,6 +9,9 @@ from typing import TYPE_CHECKING, Any
 
 from bench_matrix.matrix.spec import TASKS
 from bench_matrix.tensors import DTYPES
+from bench_matrix.workload.driving.circuits import BUILTIN_CIRCUITS
+from bench_matrix.workload.driving.points import MAX_COORDINATE
+from bench_matrix.workload.driving.simulator import MODES
 
 if TYPE_CHECKING:
     from bench_matrix.backends.registry import Vocabulary
@@ -218,6 +221,47 @@ _INPUT = {
     },
 }
 
+_CIRCUIT = {
+    "if": {"type": "string"},
+    "then": {"enum": list(BUILTIN_CIRCUITS)},
+    "else": {
+        "type": "object", "additionalProperties": False, "required": ["name"],
+        "properties": {
+            "name": NAME,
+            "points": {"type": "array", "minItems": 4, "maxItems": 10_000,
+                       "description": "a closed circuit's centreline: [x, y] points in metres, in driving "
+                                      "order",
+                       "items": {"type": "array", "minItems": 2, "maxItems": 2, "items": {
+                           "type": "number", "minimum": -MAX_COORDINATE, "maximum": MAX_COORDINATE}}},
+            "lane_width": {"type": "number", "minimum": 4, "maximum": 12,
+                           "description": "metres (default 7.5)"},
+            "time_limit_s": _seconds(3_600, exclusive=True),
+        },
+    },
+    "description": "a built-in circuit's name, or {name, points, lane_width} (or {name, time_limit_s})",
+}
+
+CLOSED_LOOP: dict[str, Any] = {
+    "type": "object", "additionalProperties": False,
+    "description": "drive laps in the built-in simulator with the cells' own artifacts (docs/closed-loop.md)",
+    "properties": {
+        "circuits": {"type": "array", "minItems": 1, "items": _CIRCUIT},
+        "modes": _axis({"enum": list(MODES)}),
+        "brain_period_ms": {"type": "number", "minimum": 1, "maximum": 10_000,
+                            "description": "target brain cycle (default 50 ms, the study's)"},
+        "latency_budget_ms": {"type": "number", "minimum": 0, "maximum": 10_000,
+                              "description": "real_time: added to every measured brain time (a slower "
+                                             "target)"},
+        "time_limit_s": _seconds(3_600, exclusive=True, description="simulated seconds per circuit"),
+        "off_road_limit_s": _seconds(600, exclusive=True,
+                                     description="a lap stops after this long off the road in one go"),
+        "cells": {"if": {"type": "string"}, "then": {"const": "all"},
+                  "else": {"type": "array", "minItems": 1, "items": _SELECTOR},
+                  "description": "'all' (default) or a list of partial cells, as in include"},
+        "exclude": {"type": "array", "items": _SELECTOR},
+    },
+}
+
 SCHEMA: dict[str, Any] = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "$id": "https://bench-matrix.dev/schema/matrix.schema.json",
@@ -277,12 +321,17 @@ SCHEMA: dict[str, Any] = {
                     "description": "metric plugins to compute for every cell, besides the task's own"},
         "include": {"type": "array", "items": _SELECTOR},
         "exclude": {"type": "array", "items": _SELECTOR},
+        "closed_loop": CLOSED_LOOP,
         "settings": {"type": "object", "additionalProperties": False, "properties": {
             "warmup_iterations": _count(0, MAX_ITERATIONS),
             "warmup_s": _seconds(),
             "min_iterations": _count(1, MAX_ITERATIONS),
             "min_time_s": _seconds(),
             "max_time_s": _seconds(exclusive=True),
+            "ci_rel_width": {"type": "number", "exclusiveMinimum": 0, "maximum": 1,
+                             "description": "after the minimum count and time, the latency loop stops once "
+                                            "the 95 % confidence interval of the p50 spans at most this "
+                                            "fraction of it (else it goes on up to max_time_s)"},
             "batch_size": _count(1, MAX_BATCH),
             "throughput_time_s": _seconds(exclusive=True),
             "threads": _count(1, MAX_THREADS),

@@ -142,6 +142,7 @@ class Settings:
     min_iterations: int = 200
     min_time_s: float = 2.0
     max_time_s: float = 60.0
+    ci_rel_width: float = 0.2  # after the minimums, stop once the p50's 95 % interval spans this much of it
     batch_size: int = 32
     throughput_time_s: float = 1.0
     threads: int = 1
@@ -165,6 +166,39 @@ class Selector:
 
 
 @dataclass(frozen=True)
+class CircuitSpec:
+    """A circuit to drive: a built-in one by name, or a user's closed list of [x, y] points (metres)."""
+
+    name: str
+    points: tuple[tuple[float, float], ...] = ()  # empty: the built-in circuit `name`
+    lane_width: float = 7.5  # of a user circuit, metres
+    time_limit_s: float | None = None  # None: the section's time_limit_s, else the circuit's default
+
+
+@dataclass(frozen=True)
+class ClosedLoopSpec:
+    """The `closed_loop` section: which cells drive which circuits, in which timing modes, and how."""
+
+    circuits: tuple[CircuitSpec, ...] = (CircuitSpec("simple"),)
+    modes: tuple[str, ...] = ("lock_step", "real_time")
+    brain_period_ms: float = 50.0
+    latency_budget_ms: float = 0.0  # real_time: added to every measured brain time
+    time_limit_s: float | None = None  # per circuit, simulated seconds; None: each circuit's default
+    off_road_limit_s: float = 2.0
+    cells: tuple[Selector, ...] | None = None  # None: every cell
+    exclude: tuple[Selector, ...] = ()
+
+    def selects(self, cell: dict[str, str]) -> bool:
+        """True when the cell (as a dict) is among `cells` and not excluded."""
+        chosen = self.cells is None or any(s.matches(cell) for s in self.cells)
+        return chosen and not any(s.matches(cell) for s in self.exclude)
+
+    def drive_dict(self) -> dict[str, Any]:
+        """How the cells drive (selection aside): what a closed-loop result depends on."""
+        return {k: v for k, v in asdict(self).items() if k not in ("cells", "exclude")}
+
+
+@dataclass(frozen=True)
 class Matrix:
     """A loaded, validated matrix file."""
 
@@ -179,6 +213,7 @@ class Matrix:
     settings: Settings
     backend_options: dict[str, dict[str, Any]] = field(default_factory=dict)  # per backend, its own options
     metrics: tuple[str, ...] = ()  # metric plugins to add to every cell's evaluation
+    closed_loop: ClosedLoopSpec | None = None  # closed-loop driving of (some) cells; None: offline only
     lines: dict[tuple, int] = field(default_factory=dict, compare=False, repr=False)
 
     def model(self, name: str) -> ModelSpec:

@@ -1,4 +1,5 @@
-"""The environment a result was measured in: host, CPU, cores, memory, GPUs, Python and library versions."""
+"""The environment a result was measured in: host, CPU, cores, frequency policy, memory, GPUs, Python and
+library versions."""
 
 from __future__ import annotations
 
@@ -9,9 +10,11 @@ from importlib.metadata import PackageNotFoundError, version
 
 from bench_matrix import __version__
 from bench_matrix.hardware import nvidia_gpus
+from bench_matrix.measure.affinity import allowed_cpus, cpu_frequency_state
 
 LIBRARIES = ("numpy", "torch", "onnx", "onnxruntime", "onnxruntime-gpu", "tensorflow", "tensorflow-cpu",
-             "tf-keras", "tensorflow-model-optimization", "ai-edge-litert", "tf2onnx", "tensorrt", "torch-tensorrt")
+             "tf-keras", "tensorflow-model-optimization", "ai-edge-litert", "tf2onnx", "tensorrt",
+             "torch-tensorrt")
 
 
 def cpu_model() -> str:
@@ -52,7 +55,7 @@ def capture() -> dict[str, object]:
     """A snapshot recorded with every result."""
     return {
         "host": platform.node(), "os": f"{platform.system()} {platform.release()}", "cpu": cpu_model(),
-        "cores": os.cpu_count(), "cores_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "cores": os.cpu_count(), "cores_usable": len(allowed_cpus()), "cpu_frequency": cpu_frequency_state(),
         "memory_gb": memory_gb(), "gpus": list(nvidia_gpus()), "python": sys.version.split()[0],
         "libraries": library_versions(), "bench_matrix": __version__,
     }

@@ -7,7 +7,16 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from bench_matrix.measure.metrics import DIRECTIONS, SNR_LIMIT_DB
-from bench_matrix.report.summary import ModelSummary, Report, Row, metric, number, p50
+from bench_matrix.report.summary import (
+    ModelSummary,
+    Report,
+    Row,
+    disturbed_phases,
+    metric,
+    number,
+    p50,
+    unsteady_phases,
+)
 from bench_matrix.store import CellRecord
 
 DASH = "—"
@@ -66,18 +75,22 @@ def _method(row: Row) -> str:
     return row.record.cell.label + (" (baseline)" if row.is_baseline else "")
 
 
-def _latency(stat: str) -> Callable[[Row], str]:
-    return lambda row: sig(metric(row.record, "latency_ms", stat), 3)
+APPROXIMATE = " ~"  # after a figure of a timed phase that was disturbed or unsteady: see docs/metrics.md
 
 
-UNSTEADY = 0.05  # chunk medians of the kept timing attempt differ by more than this: see docs/metrics.md
+def _timed(phase: str, *path: str) -> Callable[[Row], str]:
+    """A figure of a timed phase, marked APPROXIMATE when that phase never had a clean attempt."""
+    def render(row: Row) -> str:
+        text = sig(metric(row.record, *path), 3)
+        marked = phase in disturbed_phases(row.record) or phase in unsteady_phases(row.record)
+        return text + APPROXIMATE if text != DASH and marked else text
+    return render
 
 
-def _p50(row: Row) -> str:
-    """The p50, marked "~" when even the steadiest timing attempt drifted (interference on the machine)."""
-    text = sig(metric(row.record, "latency_ms", "p50"), 3)
-    stability = metric(row.record, "latency_stability")
-    return text + " ~" if stability is not None and stability > UNSTEADY else text
+def _ci(row: Row) -> str:
+    """Half the width of the p50's 95 % confidence interval, in % of the p50."""
+    width = metric(row.record, "latency_ms", "p50_ci_rel")
+    return DASH if width is None else f"{width * 50:.1f}"
 
 
 SIZE, ACCURACY, SPEED, THROUGHPUT = "size", "accuracy", "speed", "throughput"
@@ -100,16 +113,21 @@ LEADING: tuple[Column, ...] = (
 )
 TRAILING: tuple[Column, ...] = (
     Column("p50\nms", "median latency of one inference at batch 1, in milliseconds, after warm-up; "
-                       "\"~\" marks a cell whose timing drifted by more than 5 % between parts of the run in "
-                       "every attempt (something else used the machine): treat it as approximate.",
-           _p50, SPEED),
+                       "\"~\" after a timing figure marks a phase that had no clean attempt: disturbed by "
+                       "other processes or CPU steal above the limits, or unsteady (its chunk medians "
+                       "drifted); treat it as approximate (the cell is listed under Disturbed or Unsteady).",
+           _timed("latency", "latency_ms", "p50"), SPEED),
+    Column("p50 CI\n±%", "half the width of the 95 % confidence interval of the p50 (distribution-free, "
+           "from order statistics), in % of the p50.", _ci, SPEED, optional=True),
     Column("e2e p50\nms", "GPU cells: median latency at batch 1 including the host-to-device copy of the input "
            "and the copy of the outputs back (p50 ms counts the computation only, input already on the device).",
-           lambda r: sig(metric(r.record, "latency_ms_e2e", "p50"), 3), SPEED, optional=True),
-    Column("p90\nms", "90th-percentile latency at batch 1, in milliseconds.", _latency("p90"), SPEED),
-    Column("p99\nms", "99th-percentile latency at batch 1, in milliseconds.", _latency("p99"), SPEED),
+           _timed("latency_e2e", "latency_ms_e2e", "p50"), SPEED, optional=True),
+    Column("p90\nms", "90th-percentile latency at batch 1, in milliseconds.",
+           _timed("latency", "latency_ms", "p90"), SPEED),
+    Column("p99\nms", "99th-percentile latency at batch 1, in milliseconds.",
+           _timed("latency", "latency_ms", "p99"), SPEED),
     Column("Throughput\nsamples/s", "samples per second at the batch size given above the table.",
-           lambda r: sig(metric(r.record, "throughput_sps"), 3), THROUGHPUT),
+           _timed("throughput", "throughput_sps"), THROUGHPUT),
     Column("Peak RSS\nMiB", "peak resident memory of the process that measured the cell, in MiB.",
            lambda r: fixed(metric(r.record, "peak_rss_mb"), 1), THROUGHPUT),
     Column("GPU\nMiB", "GPU cells: GPU memory the measuring process held after its runs, in MiB (see "

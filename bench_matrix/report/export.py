@@ -8,18 +8,21 @@ from pathlib import Path
 from typing import Any
 
 from bench_matrix.report.columns import MIB
-from bench_matrix.report.summary import Report, Row, headline, metric
+from bench_matrix.report.summary import Report, Row, disturbed_phases, headline, metric, number
 from bench_matrix.store import CellRecord
 
 CELL_COLUMNS = ("key", "model", "framework", "backend", "strategy", "precision", "target")
 LATENCY_STATS = ("mean", "p50", "p90", "p99", "std", "min")
 CSV_COLUMNS = (*CELL_COLUMNS, "status", "reason", "size_bytes", "size_mib", "size_gzip_bytes", "size_gzip_mib",
                "params", "mse", "mae", "max_abs_diff_vs_baseline", *(f"latency_{s}_ms" for s in LATENCY_STATS),
-               "latency_n", "latency_e2e_p50_ms", "throughput_sps", "batch_size", "peak_rss_mb", "peak_gpu_mem_mb",
-               "gpu_name", "convert_s", "finetune_s", "sparsity", "clusters", "load_s", "threads", "outputs_sha256",
+               "latency_n", "latency_p50_ci_low_ms", "latency_p50_ci_high_ms", "latency_attempts",
+               "latency_stability",
+               "latency_e2e_p50_ms", "latency_e2e_p50_ci_low_ms", "latency_e2e_p50_ci_high_ms",
+               "throughput_sps", "batch_size", "peak_rss_mb", "peak_gpu_mem_mb", "gpu_name", "convert_s",
+               "finetune_s", "sparsity", "clusters", "load_s", "threads", "outputs_sha256",
                "artifact_cached", "speedup_vs_baseline", "size_ratio_vs_baseline", "mse_delta_vs_baseline",
                "task", "top1", "top5", "top1_agreement", "cosine_similarity", "snr_db",
-               "accuracy_delta_vs_baseline")
+               "accuracy_delta_vs_baseline", "interference_flagged", "interference_reason")
 
 
 def records_json(records: list[CellRecord]) -> str:
@@ -60,6 +63,14 @@ def csv_row(record: CellRecord, row: Row | None, task: str) -> dict[str, Any]:
     for stat in LATENCY_STATS:
         out[f"latency_{stat}_ms"] = _plain(metric(record, "latency_ms", stat))
     out["latency_n"] = _plain(metric(record, "latency_ms", "n"))
+    out["latency_attempts"] = _plain(metric(record, "latency_attempts"))
+    out["latency_stability"] = _plain(metric(record, "latency_stability"))
+    for prefix, series in (("latency", "latency_ms"), ("latency_e2e", "latency_ms_e2e")):
+        low, high = _interval(record, series)
+        out[f"{prefix}_p50_ci_low_ms"], out[f"{prefix}_p50_ci_high_ms"] = _plain(low), _plain(high)
+    phases = disturbed_phases(record)
+    out["interference_flagged"] = "" if record.status != "ok" else str(bool(phases)).lower()
+    out["interference_reason"] = " | ".join(f"{name}: {why}" for name, why in phases.items())
     cached = record.metrics.get("artifact_cached")
     out["artifact_cached"] = "" if not isinstance(cached, bool) else str(cached).lower()
     out["speedup_vs_baseline"] = _plain(row.speedup if row else None)
@@ -67,6 +78,15 @@ def csv_row(record: CellRecord, row: Row | None, task: str) -> dict[str, Any]:
     out["mse_delta_vs_baseline"] = _plain(row.mse_delta if row else None)
     out["accuracy_delta_vs_baseline"] = _plain(row.accuracy_delta if row else None)
     return out
+
+
+def _interval(record: CellRecord, series: str) -> tuple[float | None, float | None]:
+    """The stored 95 % interval [lo, hi] of a series' p50, or (None, None)."""
+    stats = record.metrics.get(series)
+    interval = stats.get("p50_ci") if isinstance(stats, dict) else None
+    if isinstance(interval, list) and len(interval) == 2:
+        return number(interval[0]), number(interval[1])
+    return None, None
 
 
 def _plain(value: float | None) -> float | int | str:

@@ -21,7 +21,9 @@ from bench_matrix.report.columns import (
     run_line,
     shown,
 )
+from bench_matrix.report import closed_loop
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
+from bench_matrix.report.trajectories import write_plots
 from bench_matrix.store import CellRecord
 
 _COLUMN_NOTES = ("Latency is measured one sample at a time after warm-up runs; p50/p90/p99 are percentiles "
@@ -43,6 +45,7 @@ def write_pages(report: Report, out_dir: Path) -> list[Path]:
         path = out_dir / name
         path.write_text(text, encoding="utf-8", newline="\n")
         paths.append(path)
+    write_plots(report.models, out_dir)  # the closed-loop trajectories the model pages embed
     return paths
 
 
@@ -72,6 +75,8 @@ def model_page(model: ModelSummary) -> str:
     if note:
         lines += [f"> **Note:** {note}", ""]
     lines += [line for suspect in model.suspects for line in (f"> **Suspect:** {_escape_text(suspect)}", "")]
+    lines += [line for cell in model.disturbed for line in (f"> **Disturbed (~):** {_escape(cell)}", "")]
+    lines += [line for cell in model.unsteady for line in (f"> **Unsteady (~):** {_escape(cell)}", "")]
     lines += ["## Results", ""]
     if model.rows:
         columns = shown(model_columns(model), model.rows)
@@ -82,6 +87,7 @@ def model_page(model: ModelSummary) -> str:
                   "", f"{_COLUMN_NOTES} {DASH} means the metric was not recorded for that cell.", ""]
     else:
         lines += ["No cell of this model produced a result.", ""]
+    lines += closed_loop.markdown_lines(model, _table, _escape)
     if model.skipped:
         lines += [f"## Skipped ({len(model.skipped)})", "",
                   _table(["Method", "Cell", "Reason"], [False] * 3,

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 from bench_matrix.measure.metrics import HEADLINE
+from bench_matrix.measure.timing import DRIFT_LIMIT
 from bench_matrix.store import CellRecord
 
 STATUSES = ("ok", "skipped", "failed")
@@ -53,6 +54,8 @@ class ModelSummary:
     failed: tuple[CellRecord, ...]
     environment: Environment
     suspects: tuple[str, ...] = ()  # cells at different precisions whose test outputs are bit-identical
+    disturbed: tuple[str, ...] = ()  # cells flagged for interference (every attempt of a phase), and why
+    unsteady: tuple[str, ...] = ()  # cells whose kept latency attempt still drifted, and by how much
 
     @property
     def task(self) -> str:
@@ -141,7 +144,50 @@ def _model(name: str, records: list[CellRecord], info: dict[str, Any]) -> ModelS
     return ModelSummary(name=name, framework=framework, info=info, baseline_key=baseline_key, baseline=baseline,
                         rows=rows, skipped=tuple(r for r in by_key if r.status == "skipped"),
                         failed=tuple(r for r in by_key if r.status == "failed"), environment=environment(records),
-                        suspects=suspects(ok))
+                        suspects=suspects(ok), disturbed=problem_lines(ok, disturbed_phases),
+                        unsteady=problem_lines(ok, unsteady_phases))
+
+
+def disturbed_phases(record: CellRecord) -> dict[str, str]:
+    """The timed phases (latency, latency_e2e, throughput) of a record flagged for interference: disturbed in
+    every attempt, with why."""
+    return _kept_problems(record, "disturbed")
+
+
+def unsteady_phases(record: CellRecord) -> dict[str, str]:
+    """The timed phases whose kept attempt still drifted, with why; for a record from before interference was
+    measured, its latency when its chunk medians drifted."""
+    if isinstance(record.metrics.get("interference"), dict):
+        return _kept_problems(record, "unsteady")
+    stability = metric(record, "latency_stability")
+    return ({"latency": f"chunk medians drifted by {stability:.0%} (limit {DRIFT_LIMIT:.0%})"}
+            if stability is not None and stability > DRIFT_LIMIT else {})
+
+
+def _kept_problems(record: CellRecord, kind: str) -> dict[str, str]:
+    """The `kind` ("disturbed" or "unsteady") text of each phase's kept attempt, where it has one."""
+    interference = record.metrics.get("interference")
+    phases = interference.get("phases") if isinstance(interference, dict) else None
+    found = {}
+    for name, phase in (phases if isinstance(phases, dict) else {}).items():
+        attempts, kept = (phase.get("attempts"), phase.get("kept")) if isinstance(phase, dict) else ([], None)
+        if isinstance(attempts, list) and isinstance(kept, int) and 0 <= kept < len(attempts):
+            text = attempts[kept].get(kind) if isinstance(attempts[kept], dict) else None
+            if text:
+                found[name] = f"{text} ({len(attempts)} attempts, none clean)"
+    return found
+
+
+def problem_lines(records: Iterable[CellRecord], phases_of: Callable[[CellRecord], dict[str, str]]
+                  ) -> tuple[str, ...]:
+    """One line per record with problems by `phases_of`: the cell, then each phase and why."""
+    lines = []
+    for record in sorted(records, key=lambda r: r.cell.key):
+        phases = phases_of(record)
+        if phases:
+            reasons = " | ".join(f"{name}: {why}" for name, why in phases.items())
+            lines.append(f"{record.cell.label}: {reasons}")
+    return tuple(lines)
 
 
 def suspects(records: Iterable[CellRecord]) -> tuple[str, ...]:

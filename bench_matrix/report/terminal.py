@@ -24,6 +24,7 @@ from bench_matrix.report.columns import (
     run_line,
     shown,
 )
+from bench_matrix.report import closed_loop
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
 from bench_matrix.store import CellRecord
 
@@ -62,8 +63,13 @@ def _print_model(model: ModelSummary, console: Console) -> None:
         console.print(Text(note, style="yellow"))
     for suspect in model.suspects:
         console.print(Text(f"Suspect: {suspect}", style="bold red"))
+    for line in model.disturbed:
+        console.print(Text(f"Disturbed (~): {line}", style="yellow"))
+    for line in model.unsteady:
+        console.print(Text(f"Unsteady (~): {line}", style="yellow"))
     if model.rows:
         console.print(*results_tables(model, console))
+    closed_loop.print_terminal(model, console)
     if model.skipped:
         console.print(_reasons_table(f"Skipped ({len(model.skipped)})", model.skipped, full=True, style="yellow"))
     if model.failed:

@@ -12,7 +12,7 @@ _MAX_CURVATURE = 1.0 / 18.0  # tightest bend: 18 m radius
 _MIN_RIGHT_CURVATURE = 1.0 / 70.0  # at least one right bend of radius <= 70 m
 _MIN_LEFT_CURVATURE = 1.0 / 35.0  # at least one left bend of radius <= 35 m
 _CLEARANCE = 6.0  # grass between distinct parts of the track, metres
-_GRID_STEP = 0.25  # spacing of the dense centreline used for localisation, metres
+GRID_STEP = 0.25  # spacing of the dense centreline used for localisation, metres
 
 Pose = tuple[float, float, float]  # world x, y (metres) and yaw (radians, counter-clockwise from +x)
 
@@ -86,8 +86,45 @@ def _acceptable(profile: RadialProfile, reach: float) -> bool:
     return bool(dist[arc > 30.0].min(initial=np.inf) > 2 * reach + _CLEARANCE)
 
 
+class Track:
+    """A closed road around an arc-length centreline; subclasses set `length`, `lane_width`, `markings`,
+    `seed` and the localisation grid, and implement `pose_at` and `curvature`."""
+
+    seed: int
+    lane_width: float
+    markings: Markings
+    length: float
+    _grid: np.ndarray  # [2, n] centreline x, y every GRID_STEP metres
+    _grid_heading: np.ndarray
+
+    def pose_at(
+        self, s: np.ndarray | float, offset: np.ndarray | float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World x, y and centreline heading at arc length s, shifted `offset` metres to the left."""
+        raise NotImplementedError
+
+    def curvature(self, s: np.ndarray | float) -> np.ndarray:
+        """Signed centreline curvature (1/m, positive = left bend when driving forward) at s."""
+        raise NotImplementedError
+
+    def _build_grid(self) -> None:
+        """The dense centreline the localisation searches, every GRID_STEP metres."""
+        x, y, self._grid_heading = self.pose_at(np.arange(0.0, self.length, GRID_STEP))
+        self._grid = np.stack([x, y])
+
+    def locate(self, pose: Pose) -> TrackPosition:
+        """Nearest centreline point, signed lateral offset and heading error of a pose."""
+        x, y, yaw = pose
+        i = int(np.argmin((self._grid[0] - x) ** 2 + (self._grid[1] - y) ** 2))
+        (cx, cy), heading = self._grid[:, i], self._grid_heading[i]
+        s = i * GRID_STEP + (x - cx) * np.cos(heading) + (y - cy) * np.sin(heading)
+        cx, cy, heading = (float(v) for v in self.pose_at(s))
+        offset = -(x - cx) * np.sin(heading) + (y - cy) * np.cos(heading)
+        return TrackPosition(float(s % self.length), float(offset), float(wrap_angle(yaw - heading)))
+
+
 @dataclass(eq=False)
-class Circuit:
+class Circuit(Track):
     """A closed, non-self-intersecting procedural circuit with an arc-length centreline."""
 
     seed: int
@@ -97,7 +134,7 @@ class Circuit:
     length: float = field(init=False)
     _s_knots: np.ndarray = field(init=False, repr=False)
     _t_knots: np.ndarray = field(init=False, repr=False)
-    _grid: np.ndarray = field(init=False, repr=False)  # [2, n] centreline x, y every _GRID_STEP metres
+    _grid: np.ndarray = field(init=False, repr=False)
     _grid_heading: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -106,8 +143,7 @@ class Circuit:
         speed = _curve(self.profile, t)[4]
         s = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * np.diff(t))])
         self._s_knots, self._t_knots, self.length = s, t, float(s[-1])
-        x, y, self._grid_heading = self.pose_at(np.arange(0.0, self.length, _GRID_STEP))
-        self._grid = np.stack([x, y])
+        self._build_grid()
 
     @classmethod
     def from_seed(cls, seed: int, max_tries: int = 500) -> Circuit:
@@ -139,13 +175,3 @@ class Circuit:
     def curvature(self, s: np.ndarray | float) -> np.ndarray:
         """Signed centreline curvature (1/m, positive = left bend when driving forward) at s."""
         return _curve(self.profile, self._angle(s))[3]
-
-    def locate(self, pose: Pose) -> TrackPosition:
-        """Nearest centreline point, signed lateral offset and heading error of a pose."""
-        x, y, yaw = pose
-        i = int(np.argmin((self._grid[0] - x) ** 2 + (self._grid[1] - y) ** 2))
-        (cx, cy), heading = self._grid[:, i], self._grid_heading[i]
-        s = i * _GRID_STEP + (x - cx) * np.cos(heading) + (y - cy) * np.sin(heading)
-        cx, cy, heading = (float(v) for v in self.pose_at(s))
-        offset = -(x - cx) * np.sin(heading) + (y - cy) * np.cos(heading)
-        return TrackPosition(float(s % self.length), float(offset), float(wrap_angle(yaw - heading)))

@@ -1,0 +1,96 @@
+"""The matrix's `closed_loop` section, read after schema validation: circuits built and checked, selectors
+checked against the matrix, models selected by name that cannot drive refused."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from bench_matrix.matrix.schema import CELL_KEYS
+from bench_matrix.matrix.spec import CircuitSpec, ClosedLoopSpec, DatasetSpec, ModelSpec, Selector
+from bench_matrix.matrix.yamlpos import Located, suggest
+from bench_matrix.workload.driving.circuits import BUILTIN_CIRCUITS, user_circuit
+
+AT = ("closed_loop",)
+
+
+def drive_problem(model: ModelSpec, dataset: DatasetSpec, task: str) -> str | None:
+    """Why a model cannot drive in the simulator, or None: it must map the built-in driving camera image to
+    regressed [v, w], i.e. be evaluated on `dataset: {builtin: driving}` with task regression."""
+    if dataset.kind == "builtin" and dataset.builtin == "driving" and task == "regression":
+        return None
+    builtin = dataset.kind == "builtin"
+    what = f"the builtin {dataset.builtin} dataset" if builtin else f"a {dataset.kind} dataset"
+    return (f"model {model.name} cannot drive: closed-loop laps feed it the simulator's camera image (the "
+            f"built-in driving dataset's) and take its outputs as [v, w], which needs a model evaluated on "
+            f"dataset builtin: driving with task regression; it is evaluated on {what} with task {task}")
+
+
+def closed_loop(data: dict[str, Any] | None, models: tuple[ModelSpec, ...], shared: DatasetSpec,
+                known: dict[str, list[str] | None], report: Located) -> ClosedLoopSpec | None:
+    """The typed section (None when the matrix has none); every problem is added to `report`."""
+    if data is None:
+        return None
+    circuits = tuple(_circuit(i, entry, report) for i, entry in enumerate(data.get("circuits", ["simple"])))
+    names = [c.name for c in circuits]
+    for i, name in enumerate(names):
+        if names.index(name) != i:
+            report.add(AT + ("circuits", i), f"circuit '{name}' is listed twice; names must be unique")
+    cells = data.get("cells", "all")
+    selected = None if cells == "all" else tuple(_selector("cells", i, s, known, report)
+                                                 for i, s in enumerate(cells))
+    for i, selector in enumerate(selected or ()):
+        _refuse_non_drivers(i, dict(selector.values), models, shared, report)
+    exclude = tuple(_selector("exclude", i, s, known, report) for i, s in enumerate(data.get("exclude", [])))
+    return ClosedLoopSpec(circuits=circuits, modes=tuple(data.get("modes", ClosedLoopSpec.modes)),
+                          brain_period_ms=data.get("brain_period_ms", ClosedLoopSpec.brain_period_ms),
+                          latency_budget_ms=data.get("latency_budget_ms", ClosedLoopSpec.latency_budget_ms),
+                          time_limit_s=data.get("time_limit_s"),
+                          off_road_limit_s=data.get("off_road_limit_s", ClosedLoopSpec.off_road_limit_s),
+                          cells=selected, exclude=exclude)
+
+
+def _circuit(i: int, entry: str | dict[str, Any], report: Located) -> CircuitSpec:
+    """A built-in name, or a mapping: a built-in name with a time limit, or a user circuit with points."""
+    at = AT + ("circuits", i)
+    if isinstance(entry, str):
+        return CircuitSpec(entry)
+    name, points = entry["name"], tuple(tuple(p) for p in entry.get("points", ()))
+    spec = CircuitSpec(name, points, entry.get("lane_width", CircuitSpec.lane_width),
+                       entry.get("time_limit_s"))
+    if not points:
+        if name not in BUILTIN_CIRCUITS:
+            report.add(at + ("name",), f"'{name}' is not a built-in circuit (built-in: "
+                                       f"{', '.join(BUILTIN_CIRCUITS)}); a circuit of your own needs 'points'"
+                                       f"{suggest(name, list(BUILTIN_CIRCUITS))}")
+        elif "lane_width" in entry:
+            report.add(at + ("lane_width",), f"'lane_width' is for a circuit given as points; the built-in "
+                                             f"circuit {name} has its own")
+        return spec
+    if name in BUILTIN_CIRCUITS:
+        report.add(at + ("name",), f"'{name}' is a built-in circuit's name; give your circuit another name")
+    try:
+        user_circuit(points, spec.lane_width)
+    except ValueError as problem:
+        report.add(at + ("points",), f"circuit {name}: {problem}")
+    return spec
+
+
+def _selector(section: str, i: int, entry: dict[str, str], known: dict[str, list[str] | None],
+              report: Located) -> Selector:
+    for key, value in entry.items():
+        allowed = known.get(key)
+        if allowed is not None and value not in allowed:
+            report.add(AT + (section, i, key), f"'{value}' is not a known {key}; known: {', '.join(allowed)}"
+                                               f"{suggest(value, allowed)}")
+    return Selector(values=tuple((k, entry[k]) for k in CELL_KEYS if k in entry))
+
+
+def _refuse_non_drivers(i: int, fixed: dict[str, str], models: tuple[ModelSpec, ...], shared: DatasetSpec,
+                        report: Located) -> None:
+    """A selector naming a model that cannot drive asks for the impossible: say so (a selector naming no model
+    leaves such models' cells skipped with the reason)."""
+    for model in models:
+        if model.name == fixed.get("model"):
+            dataset = model.dataset or shared
+            if problem := drive_problem(model, dataset, model.task or dataset.task):
+                report.add(AT + ("cells", i, "model"), problem)

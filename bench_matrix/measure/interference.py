@@ -1,0 +1,103 @@
+"""Interference with a timed phase, from what the operating system reports: this process's involuntary context
+switches (getrusage), CPU time other processes took (/proc/stat busy time minus our own) and CPU steal."""
+
+from __future__ import annotations
+
+import os
+import resource
+import time
+from dataclasses import dataclass
+
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")  # /proc/stat counts in these units per second
+BUSY_FIELDS = (0, 1, 2, 5, 6)  # user, nice, system, irq, softirq (guest time is already inside user)
+STEAL_FIELD = 7
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Above any of these, a timed phase counts as disturbed (chosen from measurements: docs/metrics.md §5).
+    Preemptions have none: a runtime's own threads preempt each other hundreds of times a second."""
+
+    other_share: float = 0.05  # other processes' CPU time on the measuring CPUs ÷ those CPUs' capacity
+    machine_share: float = 0.25  # other processes' CPU time on every CPU ÷ the machine's capacity
+    steal_share: float = 0.03  # time the hypervisor gave others on the measuring CPUs ÷ their capacity
+
+
+@dataclass(frozen=True)
+class Interference:
+    """What other work did during one timed phase, as seconds, counts, rates and shares of wall time."""
+
+    wall_s: float
+    cpus: tuple[int, ...]  # the measuring process's CPUs (its affinity)
+    own_cpu_s: float  # CPU time of every thread of the measuring process
+    other_cpu_s: float  # CPU time others took on the measuring CPUs
+    other_share: float  # other_cpu_s ÷ (wall_s × len(cpus))
+    machine_share: float  # others' CPU time on every CPU ÷ (wall_s × CPU count)
+    steal_share: float  # steal on the measuring CPUs ÷ (wall_s × len(cpus))
+    preemptions: int  # involuntary context switches of the measuring process (recorded; no limit: see Limits)
+    cpu_busy: dict[int, float]  # every CPU's busy share of the window (ours included)
+
+    @property
+    def preemptions_per_s(self) -> float:
+        return self.preemptions / self.wall_s if self.wall_s > 0 else 0.0
+
+    def problem(self, limits: Limits) -> str | None:
+        """Why this phase counts as disturbed under `limits`, or None when it does not."""
+        checks = ((self.other_share, limits.other_share,
+                   "other processes took {:.0%} of the measuring CPU(s) (limit {:.0%})"),
+                  (self.machine_share, limits.machine_share,
+                   "other processes took {:.0%} of the machine's CPU time (limit {:.0%})"),
+                  (self.steal_share, limits.steal_share, "CPU steal {:.0%} (limit {:.0%})"))
+        return "; ".join(text.format(value, limit) for value, limit, text in checks if value > limit) or None
+
+    def as_dict(self) -> dict[str, object]:
+        """The figures as stored in a record (shares and rates rounded to 4 digits)."""
+        return {"wall_s": round(self.wall_s, 4), "cpus": list(self.cpus),
+                "own_cpu_s": round(self.own_cpu_s, 4),
+                "other_cpu_s": round(self.other_cpu_s, 4), "other_share": round(self.other_share, 4),
+                "machine_share": round(self.machine_share, 4), "steal_share": round(self.steal_share, 4),
+                "preemptions": self.preemptions, "preemptions_per_s": round(self.preemptions_per_s, 1),
+                "cpu_busy": {str(cpu): round(share, 4) for cpu, share in sorted(self.cpu_busy.items())}}
+
+
+def cpu_jiffies() -> dict[int, tuple[int, int]]:
+    """(busy, steal) clock ticks of every CPU since boot, from /proc/stat; empty where it cannot be read."""
+    try:
+        with open("/proc/stat") as stat:
+            lines = [line.split() for line in stat if line.startswith("cpu") and line[3:4].isdigit()]
+    except OSError:
+        return {}
+    counts = {int(parts[0][3:]): [int(v) for v in parts[1:]] for parts in lines}
+    return {cpu: (sum(v[i] for i in BUSY_FIELDS if i < len(v)), v[STEAL_FIELD] if len(v) > STEAL_FIELD else 0)
+            for cpu, v in counts.items()}
+
+
+class Sampler:
+    """`start()` before a timed phase and `stop()` after it give the interference during it."""
+
+    def __init__(self) -> None:
+        self._begin: tuple[float, resource.struct_rusage, dict[int, tuple[int, int]]] | None = None
+
+    def start(self) -> None:
+        self._begin = (time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF), cpu_jiffies())
+
+    def stop(self) -> Interference:
+        end, usage, jiffies = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF), cpu_jiffies()
+        if self._begin is None:
+            raise RuntimeError("Sampler.stop() without start()")
+        begin, before, then = self._begin
+        wall = max(end - begin, 1e-9)
+        own = (usage.ru_utime + usage.ru_stime) - (before.ru_utime + before.ru_stime)
+        cpus = tuple(sorted(os.sched_getaffinity(0)))
+        delta = {cpu: (jiffies[cpu][0] - then[cpu][0], jiffies[cpu][1] - then[cpu][1])
+                 for cpu in jiffies if cpu in then}
+        ours = [delta[cpu] for cpu in cpus if cpu in delta]
+        other = max(sum(busy for busy, _ in ours) / CLOCK_TICKS - own, 0.0)
+        machine = max(sum(busy for busy, _ in delta.values()) / CLOCK_TICKS - own, 0.0)
+        return Interference(
+            wall_s=wall, cpus=cpus, own_cpu_s=own, other_cpu_s=other,
+            other_share=other / (wall * len(ours)) if ours else 0.0,
+            machine_share=machine / (wall * len(delta)) if delta else 0.0,
+            steal_share=sum(steal for _, steal in ours) / CLOCK_TICKS / (wall * len(ours)) if ours else 0.0,
+            preemptions=usage.ru_nivcsw - before.ru_nivcsw,
+            cpu_busy={cpu: busy / CLOCK_TICKS / wall for cpu, (busy, _) in delta.items()})

@@ -1,0 +1,48 @@
+"""A third-party backend for the real-time closed-loop test: ONNX Runtime with a fixed delay added to every
+inference, an artificially slowed brain (as a slow target would be); installed as a .dist-info with an entry
+point, like tests/plugin_npu.py."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench_matrix.backends.base import Session
+from bench_matrix_backends.onnxruntime import OnnxRuntimeBackend
+
+DELAY_S = 0.25  # from about 0.2 s on, the late commands visibly worsen the driving (docs/closed-loop.md)
+
+
+class SlowOrtBackend(OnnxRuntimeBackend):
+    """ONNX Runtime's conversion and session, every execute DELAY_S slower."""
+
+    name = "slow_ort"
+    description = "test plugin: ONNX Runtime plus a fixed delay per inference"
+    baseline_for = ()
+
+    def load(self, artifact_dir: Path, meta: dict[str, Any], target: str, precision: str,
+             threads: int) -> Session:
+        return SlowSession(super().load(artifact_dir, meta, target, precision, threads))
+
+
+class SlowSession(Session):
+    """Another session, each execute preceded by a sleep of DELAY_S."""
+
+    def __init__(self, inner: Session):
+        self._inner = inner
+
+    def prepare(self, inputs: dict[str, np.ndarray]) -> Any:
+        return self._inner.prepare(inputs)
+
+    def execute(self, prepared: Any) -> Any:
+        time.sleep(DELAY_S)
+        return self._inner.execute(prepared)
+
+    def fetch(self, outputs: Any) -> list[np.ndarray]:
+        return self._inner.fetch(outputs)
+
+    def info(self) -> dict[str, Any]:
+        return {**self._inner.info(), "added_delay_ms": DELAY_S * 1e3}

@@ -1,0 +1,145 @@
+"""Closed-loop driving through the CLI with real runtimes: the matrix section, the laps stored beside the
+offline figures, the report's simulation table and trajectory plots, models that cannot drive, a trained
+PilotNet in lock-step (completes, deterministic) and in real time against an artificially slowed copy."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from conftest import FAST_SETTINGS, TESTS, cli, matrix_text
+
+PILOTNET = """\
+models: [{{name: pilotnet, framework: pytorch, builtin: pilotnet{training}}}]
+dataset: {{builtin: driving, samples: {samples}, circuits: {circuits}, seed: 0}}
+axes: {{backend: {backends}, strategy: [none], precision: [fp32], target: [cpu]}}
+"""
+DRIVE_KEYS = ("stop_reason", "completed_pct", "lap_time_s", "sim_time_s", "distance_m", "avg_speed_mps",
+              "deviation_mae_m", "deviation_max_m", "off_road_s", "road_departures", "brain_steps",
+              "brain_hz", "suddenness", "driving_score", "trajectory")  # everything but wall-clock timings
+
+
+def pilotnet_matrix(backends: str, closed_loop: str, samples: int = 4000, circuits: int = 20,
+                    training: str = "") -> str:
+    return (PILOTNET.format(backends=backends, samples=samples, circuits=circuits, training=training)
+            + FAST_SETTINGS.replace("}\n", ", eval_samples: 64}\n") + closed_loop)
+
+
+def install_slow_plugin(root: Path) -> dict[str, str]:
+    """tests/plugin_slow.py installed as pip would (a .dist-info with its entry point); the CLI's env."""
+    dist = root / "site" / "slow_ort-0.1.dist-info"
+    dist.mkdir(parents=True)
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: slow-ort\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text("[bench_matrix.backends]\nslow_ort = plugin_slow:SlowOrtBackend\n")
+    return {"PYTHONPATH": os.pathsep.join([str(root / "site"), str(TESTS), os.environ.get("PYTHONPATH", "")])}
+
+
+def records(project: Path, env: dict[str, str] | None = None) -> dict[str, dict]:
+    out = cli(project, "report", "--format", "json", env=env)
+    assert out.returncode == 0, out.stderr
+    return {r["cell"]["backend"]: r for r in json.loads(out.stdout)}
+
+
+def run(project: Path, text: str, *args: str, env: dict[str, str] | None = None) -> None:
+    (project / "m.yaml").write_text(text)
+    out = cli(project, "run", "m.yaml", *args, env=env, timeout=900)
+    assert out.returncode == 0, out.stdout + out.stderr
+
+
+def driving(lap: dict) -> dict:
+    return {key: lap[key] for key in DRIVE_KEYS}
+
+
+@pytest.mark.slow
+def test_cli_drives_a_small_pilotnet_on_the_oval_and_reports_it(tmp_path: Path) -> None:
+    run(tmp_path, pilotnet_matrix("[onnxruntime]", "closed_loop: {circuits: [oval], time_limit_s: 10}\n",
+                                  samples=200, circuits=4, training=", training: {epochs: 1}"))
+    record = records(tmp_path)["onnxruntime"]
+    assert record["status"] == "ok" and record["metrics"]["mse"] > 0  # the offline figures are there too
+    laps = record["metrics"]["closed_loop"]["oval"]
+    assert set(laps) == {"lock_step", "real_time"}
+    for lap in laps.values():
+        assert lap["stop_reason"] in ("lap_completed", "off_road", "stuck", "time_limit")
+        assert 0 <= lap["completed_pct"] <= 100 and lap["sim_time_s"] <= 10.0 + 1e-6
+        assert lap["inference_ms"]["n"] == lap["brain_steps"] > 0 and lap["rtf"] > 0
+        assert len(lap["trajectory"]["x"]) == len(lap["trajectory"]["y"]) >= 2
+    assert record["metrics"]["closed_loop_circuits"]["oval"]["length_m"] == pytest.approx(277, abs=1)
+    out = cli(tmp_path, "report", "--format", "md", "--out", str(tmp_path / "pages"))
+    assert out.returncode == 0, out.stderr
+    page = (tmp_path / "pages" / "pilotnet.md").read_text()
+    plot = "trajectory-pilotnet__onnxruntime__none__fp32__cpu.png"
+    assert "## Closed loop" in page and f"]({plot})" in page
+    assert "| onnxruntime none fp32 | oval | lock-step |" in page
+    assert (tmp_path / "pages" / plot).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.slow
+def test_a_model_that_cannot_drive_is_skipped_by_all_and_refused_when_named(tiny_project: Path) -> None:
+    section = "closed_loop: {circuits: [oval], modes: [lock_step]}\n"
+    run(tiny_project, matrix_text(["onnxruntime"], ["none"], ["fp32"], ["cpu"], section))
+    record = records(tiny_project)["onnxruntime"]
+    assert record["status"] == "ok" and "closed_loop" not in record["metrics"]
+    assert "model tiny cannot drive" in record["metrics"]["closed_loop_skipped"]
+    (tiny_project / "m.yaml").write_text(matrix_text(["onnxruntime"], ["none"], ["fp32"], ["cpu"],
+                                                     section.replace("}\n", ", cells: [{model: tiny}]}\n")))
+    out = cli(tiny_project, "plan", "m.yaml")
+    assert out.returncode == 2
+    assert "m.yaml:6: closed_loop.cells[0].model: model tiny cannot drive" in out.stderr
+
+
+@pytest.mark.parametrize("section, message", [
+    ("closed_loop: {modes: [lockstep]}",
+     "closed_loop.modes[0]: 'lockstep' is not allowed; allowed: lock_step, real_time; did you mean "
+     "'lock_step'?"),
+    ("closed_loop: {circuits: [simpel]}", "closed_loop.circuits[0]: 'simpel' is not allowed; allowed: oval, "
+                                          "simple, curvy, twisty; did you mean 'simple'?"),
+    ("closed_loop: {brain_period_ms: 0}", "closed_loop.brain_period_ms: must be >= 1, got 0"),
+    ("closed_loop: {cells: some}", "closed_loop.cells: 'some' is not allowed; allowed: all"),
+    ("closed_loop: {circuits: [{name: mine, points: [[0, 0], [10, 0], [10, 6], [0, 6]]}]}",
+     "closed_loop.circuits[0].points: circuit mine: the circuit is 35 m long; give at least 60 m"),
+    ("closed_loop: {exclude: [{backend: onnxruntim}]}",
+     "closed_loop.exclude[0].backend: 'onnxruntim' is not a known backend"),
+])
+def test_bad_closed_loop_section_exits_2_naming_file_key_and_allowed(tiny_project: Path, section: str,
+                                                                      message: str) -> None:
+    text = matrix_text(["onnxruntime"], ["none"], ["fp32"], ["cpu"], section + "\n")
+    (tiny_project / "m.yaml").write_text(text)
+    out = cli(tiny_project, "plan", "m.yaml")
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert f"m.yaml:6: {message}" in out.stderr
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A project whose workspace holds a PilotNet trained on the default driving data (4000 samples, 8 epochs)
+    and its lock-step lap of the default circuit."""
+    project = tmp_path_factory.mktemp("trained")
+    run(project, pilotnet_matrix("[onnxruntime]", "closed_loop: {modes: [lock_step]}\n"))
+    return project
+
+
+@pytest.mark.slow
+def test_trained_pilotnet_completes_the_default_circuit_deterministically(trained: Path) -> None:
+    first = records(trained)["onnxruntime"]["metrics"]["closed_loop"]["simple"]["lock_step"]
+    assert first["stop_reason"] == "lap_completed" and first["completed_pct"] == 100.0, first
+    assert first["road_departures"] == 0 and first["deviation_mae_m"] < 1.5
+    run(trained, (trained / "m.yaml").read_text(), "--force")  # the same cell and artifact, measured again
+    second = records(trained)["onnxruntime"]["metrics"]["closed_loop"]["simple"]["lock_step"]
+    assert driving(second) == driving(first)
+
+
+@pytest.mark.slow
+def test_a_slowed_brain_drives_worse_in_real_time(trained: Path) -> None:
+    env = install_slow_plugin(trained)
+    section = "closed_loop: {modes: [real_time], time_limit_s: 40}\n"
+    run(trained, pilotnet_matrix("[onnxruntime, slow_ort]", section), env=env)
+    found = records(trained, env)
+    quick, slow = (found[backend]["metrics"]["closed_loop"]["simple"]["real_time"]
+                   for backend in ("onnxruntime", "slow_ort"))
+    assert slow["inference_ms"]["p50"] > 250 > 10 * quick["inference_ms"]["p50"]
+    assert slow["brain_hz"] < 4.1 < 19 < quick["brain_hz"]
+    assert slow["completed_pct"] < quick["completed_pct"] or \
+        slow["deviation_mae_m"] > 1.3 * quick["deviation_mae_m"], (quick, slow)

@@ -1,0 +1,74 @@
+"""Two `bench-matrix run`s at once on one host, on one store and on two: their cells' timing windows never
+overlap (one measuring cell per machine), both finish, and every cell is stored once."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from conftest import FAST_SETTINGS, cli, matrix_text, popen_cli
+
+pytestmark = pytest.mark.slow
+
+# timing phases long enough (about 1.5 s a cell) that two unsynchronised runs would time at the same moment
+SETTINGS = ("settings: {min_iterations: 5, min_time_s: 1.0, warmup_iterations: 2, warmup_s: 0.0, "
+            "throughput_time_s: 0.3, batch_size: 8, timeout_s: 300}\n")
+CELLS = {"pytorch/none/fp32/cpu", "onnxruntime/none/fp32/cpu", "onnxruntime/ptq_dynamic/int8/cpu"}
+
+
+def key(record: dict) -> str:
+    return "/".join(record["cell"][k] for k in ("backend", "strategy", "precision", "target"))
+
+
+def stored(project: Path, workspace: str) -> list[dict]:
+    out = cli(project, "--workspace", str(project / workspace), "report", "--format", "json")
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout)
+
+
+def run_both(project: Path, first: list[str], second: list[str]) -> None:
+    """Start two runs at the same moment (sharing one lock directory) and wait for both to finish."""
+    env = {"BENCH_MATRIX_LOCK_DIR": str(project / "lock")}
+    runs = [popen_cli(project, *args, env=env) for args in (first, second)]
+    outputs = [proc.communicate(timeout=600)[0] for proc in runs]
+    for proc, output in zip(runs, outputs):
+        assert proc.returncode == 0, output
+
+
+def assert_never_overlapping(records: list[dict]) -> None:
+    """The ok records' timing windows, in time order, each end before the next starts; someone waited."""
+    windows = sorted((r["metrics"]["timing_window"]["start"], r["metrics"]["timing_window"]["end"],
+                      r["cell"]["backend"]) for r in records if r["status"] == "ok")
+    assert len(windows) == len(records)
+    for (_, end, _), (start, _, _) in zip(windows, windows[1:]):
+        assert end <= start, windows
+    assert any(r["metrics"]["timing_window"]["waited_s"] > 0.1 for r in records if r["status"] == "ok")
+
+
+@pytest.fixture
+def project(tiny_project: Path) -> Path:
+    text = matrix_text(["pytorch", "onnxruntime"], ["none", "ptq_dynamic"], ["fp32", "int8"], ["cpu"])
+    (tiny_project / "m.yaml").write_text(text.replace(FAST_SETTINGS, SETTINGS))
+    return tiny_project
+
+
+def test_two_runs_on_one_store_time_one_cell_at_a_time(project: Path):
+    run_both(project, ["--workspace", str(project / "ws"), "run", "m.yaml", "--backend", "pytorch"],
+             ["--workspace", str(project / "ws"), "run", "m.yaml", "--backend", "onnxruntime"])
+    records = stored(project, "ws")
+    assert sorted(map(key, records)) == sorted(CELLS)  # every cell stored once
+    assert all(r["status"] == "ok" for r in records), [r["reason"] for r in records]
+    assert_never_overlapping(records)
+
+
+def test_two_runs_on_two_stores_time_one_cell_at_a_time(project: Path):
+    run_both(project, ["--workspace", str(project / "ws1"), "run", "m.yaml"],
+             ["--workspace", str(project / "ws2"), "run", "m.yaml"])
+    both = []
+    for workspace in ("ws1", "ws2"):
+        records = stored(project, workspace)
+        assert sorted(map(key, records)) == sorted(CELLS) and all(r["status"] == "ok" for r in records)
+        both += records
+    assert_never_overlapping(both)

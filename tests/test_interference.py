@@ -1,0 +1,155 @@
+"""Interference from what the OS reports: a real CPU-bound competitor on the measuring CPU is seen, and a
+timed phase it disturbs is re-measured or flagged."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import pytest
+
+from bench_matrix.measure import timing
+from bench_matrix.measure.interference import Interference, Limits, Sampler, cpu_jiffies
+from bench_matrix.measure.timing import LoopSettings, steady_time_calls
+from conftest import cli, matrix_text
+
+CPU = max(os.sched_getaffinity(0))
+
+
+@contextmanager
+def pinned(cpu: int) -> Iterator[None]:
+    """This process on one CPU for the block."""
+    before = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {cpu})
+    try:
+        yield
+    finally:
+        os.sched_setaffinity(0, before)
+
+
+def start_competitor(cpu: int) -> subprocess.Popen:
+    """A CPU-bound process (`while True: pass`) pinned to `cpu`, running once this returns."""
+    code = "import sys\nprint('go', flush=True)\nwhile True: pass"
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    os.sched_setaffinity(proc.pid, {cpu})
+    assert proc.stdout.readline() == "go\n"
+    return proc
+
+
+def stop(proc: subprocess.Popen) -> None:
+    proc.kill()
+    proc.wait()
+
+
+def spin(seconds: float) -> None:
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        pass
+
+
+def work(_: object) -> None:
+    sum(range(20_000))  # about a quarter of a millisecond of pure CPU
+
+
+def test_proc_stat_is_read_for_every_cpu():
+    jiffies = cpu_jiffies()
+    assert set(jiffies) >= os.sched_getaffinity(0)
+    assert all(busy >= 0 and steal >= 0 for busy, steal in jiffies.values())
+
+
+def test_a_competitor_on_the_measuring_cpu_shows_as_other_processes_and_preemptions():
+    with pinned(CPU):
+        competitor = start_competitor(CPU)
+        try:
+            sampler = Sampler()
+            sampler.start()
+            spin(1.0)
+            seen = sampler.stop()
+        finally:
+            stop(competitor)
+    assert seen.cpus == (CPU,) and seen.wall_s >= 1.0
+    assert seen.other_share > 0.3  # the scheduler shares the CPU about half and half
+    assert 0.2 < seen.own_cpu_s / seen.wall_s < 0.7
+    assert seen.preemptions_per_s > 40  # alone: about 10 a second; sharing the CPU: time slices of a few ms
+    assert seen.cpu_busy[CPU] > 0.9
+    assert "of the measuring CPU(s)" in seen.problem(Limits())
+
+
+def test_problem_names_each_figure_above_its_limit():
+    seen = Interference(wall_s=2.0, cpus=(1,), own_cpu_s=1.0, other_cpu_s=0.9, other_share=0.45,
+                        machine_share=0.3, steal_share=0.06, preemptions=500, cpu_busy={0: 0.1, 1: 0.95})
+    assert seen.preemptions_per_s == 250
+    assert seen.problem(Limits()) == (
+        "other processes took 45% of the measuring CPU(s) (limit 5%); other processes took 30% of the "
+        "machine's CPU time (limit 25%); CPU steal 6% (limit 3%)")  # preemptions are recorded, not judged
+    assert seen.problem(Limits(other_share=0.5, machine_share=0.5, steal_share=0.1)) is None
+    stored = seen.as_dict()
+    assert stored["cpu_busy"] == {"0": 0.1, "1": 0.95} and stored["preemptions_per_s"] == 250.0
+
+
+def test_a_competitor_started_during_the_timing_gets_the_phase_re_measured(monkeypatch):
+    monkeypatch.setattr(timing, "RETRY_PAUSE_S", 0.0)
+    calls, competitors = [0], []
+
+    def call(x: object) -> None:
+        calls[0] += 1
+        if calls[0] == 200:  # a tenth into the first attempt
+            competitors.append(start_competitor(CPU))
+        if calls[0] == 2000 and competitors:  # the first attempt's last call
+            stop(competitors.pop())
+        work(x)
+
+    settings = LoopSettings(0, 0.0, min_iterations=2000, min_time_s=0.0, max_time_s=30.0)
+    with pinned(CPU):
+        try:
+            phase = steady_time_calls(call, [None], settings, Limits())
+        finally:
+            for proc in competitors:
+                stop(proc)
+    first = phase.attempts[0]
+    assert first.interference.other_share > Limits().other_share and first.disturbed is not None
+    assert len(phase.attempts) >= 2  # measured again; the later attempts ran without the competitor
+    assert phase.attempts[1].interference.other_share < first.interference.other_share
+
+
+def test_a_competitor_that_stays_gets_the_phase_flagged(monkeypatch):
+    monkeypatch.setattr(timing, "RETRY_PAUSE_S", 0.0)
+    settings = LoopSettings(0, 0.0, min_iterations=400, min_time_s=0.0, max_time_s=30.0)
+    with pinned(CPU):
+        competitor = start_competitor(CPU)
+        try:
+            phase = steady_time_calls(work, [None], settings, Limits())
+        finally:
+            stop(competitor)
+    assert len(phase.attempts) == timing.ATTEMPTS and all(a.disturbed for a in phase.attempts)
+    assert "other processes took" in phase.disturbed
+    record = timing.interference_record({"latency": phase}, Limits())
+    assert record["flagged"] is True and record["reason"].startswith("latency: ")
+
+
+@pytest.mark.slow
+def test_a_run_under_a_cpu_bound_competitor_flags_its_cell_and_the_report_marks_it(tiny_project):
+    (tiny_project / "m.yaml").write_text(matrix_text(["onnxruntime"], ["none"], ["fp32"], ["cpu"]))
+    env = {"BENCH_MATRIX_LOCK_DIR": str(tiny_project / "lock")}
+    competitors = [start_competitor(cpu) for cpu in sorted(os.sched_getaffinity(0))]  # whichever CPU it pins
+    try:
+        run = cli(tiny_project, "run", "m.yaml", env=env)
+    finally:
+        for proc in competitors:
+            stop(proc)
+    assert run.returncode == 0, run.stdout + run.stderr
+    (record,) = json.loads(cli(tiny_project, "report", "--format", "json").stdout)
+    interference = record["metrics"]["interference"]
+    latency = interference["phases"]["latency"]
+    assert len(latency["attempts"]) == timing.ATTEMPTS  # re-measured, disturbed every time
+    assert interference["flagged"] is True and "other processes took" in interference["reason"]
+    assert all(a["other_share"] > Limits().other_share for a in latency["attempts"])
+    assert record["metrics"]["latency_attempts"] == timing.ATTEMPTS
+    cli(tiny_project, "report", "--format", "md", "--out", str(tiny_project / "pages"))
+    page = (tiny_project / "pages" / "tiny.md").read_text()
+    assert "> **Disturbed (~):** onnxruntime none fp32: latency: other processes took" in page

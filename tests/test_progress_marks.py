@@ -1,0 +1,40 @@
+"""The progress line of a finished cell marks a disturbed timing; a waiting phase is shown as plain text."""
+
+from __future__ import annotations
+
+import io
+
+from rich.console import Console
+
+from bench_matrix.cell import Cell
+from bench_matrix.progress import RunProgress, describe
+from bench_matrix.store import CellRecord
+
+CELL = Cell("tiny", "pytorch", "onnxruntime", "none", "fp32", "cpu")
+METRICS = {"latency_ms": {"p50": 0.5, "p99": 0.9}, "throughput_sps": 1000.0, "size_bytes": 2**20, "mse": 0.01}
+
+
+def line(metrics: dict) -> str:
+    return describe(CellRecord(cell=CELL, status="ok", metrics=metrics))
+
+
+def test_a_flagged_cell_says_it_was_disturbed_and_why():
+    reason = "others took 35 % [steal 2 %]"
+    flagged = line({**METRICS, "interference": {"flagged": True, "reason": reason}})
+    assert flagged.endswith("  [yellow]~ disturbed: others took 35 % \\[steal 2 %][/]")
+    unexplained = line({**METRICS, "interference": {"flagged": True, "reason": None}})
+    assert unexplained.endswith("  [yellow]~ disturbed[/]")
+
+
+def test_a_quiet_or_older_cell_has_no_mark():
+    assert "disturbed" not in line({**METRICS, "interference": {"flagged": False, "reason": None}})
+    assert "disturbed" not in line(METRICS)  # stored before interference was measured
+
+
+def test_a_waiting_phase_shows_its_holder_verbatim():
+    out = io.StringIO()
+    console = Console(file=out, force_terminal=True, width=300)
+    with RunProgress(console, 1) as progress:
+        progress.step("tiny · onnxruntime none fp32")
+        progress.phase("waiting for the timing phase of pid 12 of user a ([bold]x · tiny, since 17:50:02)")
+    assert "[bold]x · tiny, since 17:50:02)" in out.getvalue()
