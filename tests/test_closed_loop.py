@@ -17,6 +17,7 @@ models: [{{name: pilotnet, framework: pytorch, builtin: pilotnet{training}}}]
 dataset: {{builtin: driving, samples: {samples}, circuits: {circuits}, seed: 0}}
 axes: {{backend: {backends}, strategy: [none], precision: [fp32], target: [cpu]}}
 """
+HALF = 2000  # samples of the trained PilotNet: enough to drive, half the time to generate and train
 DRIVE_KEYS = ("stop_reason", "completed_pct", "lap_time_s", "sim_time_s", "distance_m", "avg_speed_mps",
               "deviation_mae_m", "deviation_max_m", "off_road_s", "road_departures", "brain_steps",
               "brain_hz", "suddenness", "driving_score", "trajectory")  # everything but wall-clock timings
@@ -114,10 +115,10 @@ def test_bad_closed_loop_section_exits_2_naming_file_key_and_allowed(tiny_projec
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A project whose workspace holds a PilotNet trained on the default driving data (4000 samples, 8 epochs)
-    and its lock-step lap of the default circuit."""
+    """A project whose workspace holds a PilotNet trained on half the default driving data (2000 samples of
+    10 circuits, 8 epochs) and its lock-step lap of the default circuit."""
     project = tmp_path_factory.mktemp("trained")
-    run(project, pilotnet_matrix("[onnxruntime]", "closed_loop: {modes: [lock_step]}\n"))
+    run(project, pilotnet_matrix("[onnxruntime]", "closed_loop: {modes: [lock_step]}\n", HALF, 10))
     return project
 
 
@@ -134,8 +135,8 @@ def test_trained_pilotnet_completes_the_default_circuit_deterministically(traine
 @pytest.mark.slow
 def test_a_slowed_brain_drives_worse_in_real_time(trained: Path) -> None:
     env = install_slow_plugin(trained)
-    section = "closed_loop: {modes: [real_time], time_limit_s: 40}\n"
-    run(trained, pilotnet_matrix("[onnxruntime, slow_ort]", section), env=env)
+    section = "closed_loop: {modes: [real_time], time_limit_s: 25}\n"
+    run(trained, pilotnet_matrix("[onnxruntime, slow_ort]", section, HALF, 10), env=env)
     found = records(trained, env)
     quick, slow = (found[backend]["metrics"]["closed_loop"]["simple"]["real_time"]
                    for backend in ("onnxruntime", "slow_ort"))

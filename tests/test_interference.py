@@ -10,10 +10,11 @@ import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 
 import pytest
 
-from bench_matrix.measure import timing
+from bench_matrix.measure import interference, timing
 from bench_matrix.measure.interference import Interference, Limits, Sampler, cpu_jiffies
 from bench_matrix.measure.timing import LoopSettings, steady_time_calls
 from conftest import cli, matrix_text
@@ -92,6 +93,13 @@ def test_problem_names_each_figure_above_its_limit():
     assert stored["cpu_busy"] == {"0": 0.1, "1": 0.95} and stored["preemptions_per_s"] == 250.0
 
 
+def test_a_window_too_short_for_the_tick_counts_is_recorded_but_never_judged():
+    short = Interference(wall_s=interference.JUDGED_FROM_S * 0.9, cpus=(1,), own_cpu_s=0.1, other_cpu_s=0.3,
+                         other_share=0.9, machine_share=0.9, steal_share=0.5, preemptions=5, cpu_busy={})
+    assert short.problem(Limits()) is None
+    assert replace(short, wall_s=interference.JUDGED_FROM_S).problem(Limits()) is not None
+
+
 def test_a_competitor_started_during_the_timing_gets_the_phase_re_measured(monkeypatch):
     monkeypatch.setattr(timing, "RETRY_PAUSE_S", 0.0)
     calls, competitors = [0], []
@@ -119,7 +127,8 @@ def test_a_competitor_started_during_the_timing_gets_the_phase_re_measured(monke
 
 def test_a_competitor_that_stays_gets_the_phase_flagged(monkeypatch):
     monkeypatch.setattr(timing, "RETRY_PAUSE_S", 0.0)
-    settings = LoopSettings(0, 0.0, min_iterations=400, min_time_s=0.0, max_time_s=30.0)
+    settings = LoopSettings(0, 0.0, min_iterations=400, min_time_s=interference.JUDGED_FROM_S,
+                            max_time_s=30.0)
     with pinned(CPU):
         competitor = start_competitor(CPU)
         try:
@@ -134,7 +143,9 @@ def test_a_competitor_that_stays_gets_the_phase_flagged(monkeypatch):
 
 @pytest.mark.slow
 def test_a_run_under_a_cpu_bound_competitor_flags_its_cell_and_the_report_marks_it(tiny_project):
-    (tiny_project / "m.yaml").write_text(matrix_text(["onnxruntime"], ["none"], ["fp32"], ["cpu"]))
+    judged = matrix_text(["onnxruntime"], ["none"], ["fp32"], ["cpu"]).replace(  # long enough to judge
+        "min_time_s: 0.02", "min_time_s: 0.5").replace("throughput_time_s: 0.02", "throughput_time_s: 0.5")
+    (tiny_project / "m.yaml").write_text(judged)
     env = {"BENCH_MATRIX_LOCK_DIR": str(tiny_project / "lock")}
     competitors = [start_competitor(cpu) for cpu in sorted(os.sched_getaffinity(0))]  # whichever CPU it pins
     try:
@@ -144,10 +155,10 @@ def test_a_run_under_a_cpu_bound_competitor_flags_its_cell_and_the_report_marks_
             stop(proc)
     assert run.returncode == 0, run.stdout + run.stderr
     (record,) = json.loads(cli(tiny_project, "report", "--format", "json").stdout)
-    interference = record["metrics"]["interference"]
-    latency = interference["phases"]["latency"]
+    seen = record["metrics"]["interference"]
+    latency = seen["phases"]["latency"]
     assert len(latency["attempts"]) == timing.ATTEMPTS  # re-measured, disturbed every time
-    assert interference["flagged"] is True and "other processes took" in interference["reason"]
+    assert seen["flagged"] is True and "other processes took" in seen["reason"]
     assert all(a["other_share"] > Limits().other_share for a in latency["attempts"])
     assert record["metrics"]["latency_attempts"] == timing.ATTEMPTS
     cli(tiny_project, "report", "--format", "md", "--out", str(tiny_project / "pages"))

@@ -291,3 +291,19 @@ def test_the_environment_names_every_backends_libraries_plugins_included():
     env = {"host": "h", "libraries": {"numpy": "2.0"}, "backend_versions": {"openvino": "2025.1"}}
     libraries = dict(environment([CellRecord(cell=cell, status="ok", env=env)]).libraries)
     assert libraries == {"numpy": ("2.0",), "openvino": ("2025.1",)}
+
+
+def test_the_environment_shows_the_cpu_frequency_policy_in_one_line_and_warns_when_it_differs():
+    from bench_matrix.report.summary import environment
+    from bench_matrix.store import CellRecord
+
+    hidden = {"scaling_driver": "not exposed", "scaling_governor": "not exposed", "boost": "not exposed",
+              "intel_no_turbo": "not exposed"}
+    shown = {"scaling_driver": "acpi-cpufreq", "scaling_governor": {"0": "performance", "1": "performance"},
+             "boost": "1", "intel_no_turbo": "not exposed"}
+    cells = [Cell("m", "onnx", "onnxruntime", "none", p, "cpu") for p in ("fp32", "fp16")]
+    found = environment([CellRecord(cell=c, status="ok", env={"cpu_frequency": state})
+                         for c, state in zip(cells, (hidden, shown))])
+    assert dict(found.fields)["CPU frequency"] == ("driver acpi-cpufreq, governor performance, boost 1",
+                                                   "not exposed by this machine")
+    assert any(w.startswith("CPU frequency differs") for w in found.warnings)

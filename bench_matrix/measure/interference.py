@@ -11,6 +11,8 @@ from dataclasses import dataclass
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")  # /proc/stat counts in these units per second
 BUSY_FIELDS = (0, 1, 2, 5, 6)  # user, nice, system, irq, softirq (guest time is already inside user)
 STEAL_FIELD = 7
+JUDGED_FROM_S = 40 / CLOCK_TICKS  # /proc/stat counts whole ticks: over a shorter window, an error of two
+# ticks per CPU would exceed the 5 % other_share limit, so shorter phases are recorded but never judged
 
 
 @dataclass(frozen=True)
@@ -42,7 +44,10 @@ class Interference:
         return self.preemptions / self.wall_s if self.wall_s > 0 else 0.0
 
     def problem(self, limits: Limits) -> str | None:
-        """Why this phase counts as disturbed under `limits`, or None when it does not."""
+        """Why this phase counts as disturbed under `limits`, or None when it does not (or is too short to
+        judge: JUDGED_FROM_S)."""
+        if self.wall_s < JUDGED_FROM_S:
+            return None
         checks = ((self.other_share, limits.other_share,
                    "other processes took {:.0%} of the measuring CPU(s) (limit {:.0%})"),
                   (self.machine_share, limits.machine_share,

@@ -7,6 +7,7 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from bench_matrix.measure.affinity import NOT_EXPOSED
 from bench_matrix.measure.metrics import HEADLINE
 from bench_matrix.measure.timing import DRIFT_LIMIT
 from bench_matrix.store import CellRecord
@@ -14,7 +15,8 @@ from bench_matrix.store import CellRecord
 STATUSES = ("ok", "skipped", "failed")
 # (label, env key) of the hardware/software fields shown in environment blocks, in display order.
 ENV_FIELDS = (("Host", "host"), ("OS", "os"), ("CPU", "cpu"), ("Cores", "cores"), ("Memory GB", "memory_gb"),
-              ("GPUs", "gpus"), ("Python", "python"), ("bench-matrix", "bench_matrix"))
+              ("CPU frequency", "cpu_frequency"), ("GPUs", "gpus"), ("Python", "python"),
+              ("bench-matrix", "bench_matrix"))
 
 
 @dataclass(frozen=True)
@@ -234,6 +236,17 @@ def _distinct_metric(rows: Iterable[Row], key: str) -> tuple[int, ...]:
     return tuple(sorted(int(v) for v in values if v is not None))
 
 
+def _frequency(state: dict[str, Any]) -> str:
+    """The CPU frequency policy in one line (driver, governors, boost, Intel no_turbo) or that it is hidden."""
+    governor = state.get("scaling_governor")
+    if isinstance(governor, dict):
+        governor = " / ".join(sorted(set(governor.values())))
+    named = (("driver", state.get("scaling_driver")), ("governor", governor), ("boost", state.get("boost")),
+             ("intel no_turbo", state.get("intel_no_turbo")))
+    shown = [f"{name} {value}" for name, value in named if value and value != NOT_EXPOSED]
+    return ", ".join(shown) or "not exposed by this machine"
+
+
 def _text(value: Any) -> str:
     if isinstance(value, list | tuple):
         return ", ".join(_text(v) for v in value) if value else "none"
@@ -251,7 +264,7 @@ def environment(records: Iterable[CellRecord]) -> Environment:
         env = record.env or {}
         for label, key in ENV_FIELDS:
             if env.get(key) is not None:
-                fields[label].add(_text(env[key]))
+                fields[label].add(_frequency(env[key]) if key == "cpu_frequency" else _text(env[key]))
         # the tool's libraries and each backend's own (a plugin's included)
         for name, version in {**(env.get("libraries") or {}), **(env.get("backend_versions") or {})}.items():
             libraries.setdefault(name, set()).add(_text(version))
