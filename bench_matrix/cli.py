@@ -1,4 +1,4 @@
-"""The `bench-matrix` command: run, plan, report, backends, schema."""
+"""The `bench-matrix` command: run, plan, report, backends, schema; runs, compare and merge (cli_history)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,12 @@ import sys
 from pathlib import Path
 
 from bench_matrix import __version__
+from bench_matrix.cli_history import add_commands
 from bench_matrix.errors import MatrixError, UserError
 from bench_matrix.workspace import DEFAULT_ROOT
 
 FILTER_KEYS = ("model", "backend", "strategy", "precision", "target")
+VIEW_KEYS = ("host", "model", "backend")  # report's filters (bench_matrix.report.VIEW_KEYS, without its imports)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -51,6 +53,8 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("matrix", type=Path)
     run.add_argument("--results", type=Path, help="SQLite results file (default: WORKSPACE/results.sqlite)")
     run.add_argument("--force", action="store_true", help="re-run cells that already have a stored result")
+    run.add_argument("--label", help="a name for this run in the store's history, e.g. a git commit "
+                                     "(`compare` and `report --run` accept it)")
     _filters(run)
     run.set_defaults(handler=_run)
 
@@ -65,8 +69,15 @@ def _parser() -> argparse.ArgumentParser:
 
     report = sub.add_parser("report", help="tables in the terminal and Markdown pages from stored results")
     report.add_argument("--results", type=Path, help="SQLite results file (default: WORKSPACE/results.sqlite)")
-    report.add_argument("--format", choices=("table", "md", "json", "csv"), default="table")
+    report.add_argument("--format", choices=("table", "md", "html", "json", "csv"), default="table",
+                        help="table: terminal tables, Markdown pages and report.html; md, html: only those "
+                             "(default: %(default)s)")
     report.add_argument("--out", type=Path, default=Path("reports"), help="directory for pages (default: %(default)s)")
+    report.add_argument("--run", help="the records of one run (its id, its label, `latest` or `previous`) instead "
+                                      "of the newest record of each cell")
+    group = report.add_argument_group("filters (repeat an option or separate values with commas)")
+    for key in VIEW_KEYS:
+        group.add_argument(f"--{key}", action="append", metavar=key.upper(), help=f"only records of this {key}")
     report.set_defaults(handler=_report)
 
     backends = sub.add_parser("backends", help="installed backends, what they support, what this machine can run")
@@ -77,6 +88,7 @@ def _parser() -> argparse.ArgumentParser:
     schema.add_argument("--builtin", action="store_true",
                         help="the built-in schema only (docs/matrix.schema.json), without installed plugins")
     schema.set_defaults(handler=_schema)
+    add_commands(sub)
     return parser
 
 
@@ -86,27 +98,32 @@ def _filters(parser: argparse.ArgumentParser) -> None:
         group.add_argument(f"--{key}", action="append", metavar=key.upper(), help=f"only cells with this {key}")
 
 
-def _selected(args: argparse.Namespace):
-    from bench_matrix.runner import Filters
-
+def _values(args: argparse.Namespace, keys: tuple[str, ...]) -> dict[str, frozenset[str]]:
+    """The values of repeatable, comma-separated options, by key."""
     values = {}
-    for key in FILTER_KEYS:
+    for key in keys:
         given = getattr(args, key)
         if given:
             values[key] = frozenset(v.strip() for item in given for v in item.split(",") if v.strip())
             if not values[key]:
                 raise UserError(f"--{key} {','.join(given)!r}: give at least one {key} (several: separate "
                                 f"them with commas)")
-    return Filters(values)
+    return values
+
+
+def _selected(args: argparse.Namespace):
+    from bench_matrix.runner import Filters
+
+    return Filters(_values(args, FILTER_KEYS))
 
 
 def _check_paths(args: argparse.Namespace) -> None:
     """Check --workspace, --results and --out before anything runs: one message naming the option and path."""
-    if args.command == "schema":
+    if args.command in ("schema", "merge", "compare"):
         return
-    if args.command != "report" or args.results is None:
+    if args.command not in ("report", "runs") or args.results is None:
         _check_folder("--workspace", args.workspace, "for caches, logs and results")
-    if args.command in ("plan", "report"):
+    if args.command in ("plan", "report", "runs"):
         _check_results(args)
     if args.command == "report" and args.format != "json":
         _check_folder("--out", args.out, "the report's pages are written to")
@@ -128,7 +145,7 @@ def _check_results(args: argparse.Namespace) -> None:
 
     path = args.results or args.workspace / "results.sqlite"
     label = "--results" if args.results else "results file"
-    if args.results and not os.path.lexists(args.results):
+    if (args.results or args.command == "runs") and not os.path.lexists(path):
         raise UserError(f"--results {path}: no such file; `bench-matrix run MATRIX --results {path}` "
                         f"writes one")
     if os.path.lexists(path):
@@ -157,7 +174,7 @@ def _run(args: argparse.Namespace, console) -> int:
                   f"{args.results or ws.results}", highlight=False)
     try:
         plan = resolve(matrix, ws)
-        counts = Runner(plan, ws, store, console).run(filters, args.force)
+        counts = Runner(plan, ws, store, console, args.label).run(filters, args.force)
     finally:
         store.close()
     invalid = len(plan.by_state("invalid"))
@@ -179,10 +196,10 @@ def _plan(args: argparse.Namespace, console) -> int:
 
 
 def _report(args: argparse.Namespace, console) -> int:
-    from bench_matrix.report import write_report
+    from bench_matrix.report import View, write_report
 
     results = args.results or args.workspace / "results.sqlite"
-    write_report(results, args.format, args.out, console)
+    write_report(results, args.format, args.out, console, View(args.run, _values(args, VIEW_KEYS)))
     return 0
 
 

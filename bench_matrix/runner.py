@@ -54,9 +54,11 @@ class PreparedModel:
 class Runner:
     """Runs the runnable cells of a plan one at a time and writes each record as soon as it ends."""
 
-    def __init__(self, plan: Plan, workspace: Workspace, store: ResultStore | None, progress_console: Any):
+    def __init__(self, plan: Plan, workspace: Workspace, store: ResultStore | None, progress_console: Any,
+                 label: str | None = None):
         self.plan, self.matrix, self.ws, self.store = plan, plan.matrix, workspace, store
-        self.console = progress_console
+        self.console, self.label, self.host = progress_console, label, environment.host_name()
+        self.run_id: int | None = None
         self._datasets: dict[str, PreparedData] = {}
         self._again: dict[Cell, tuple[CellRecord, MeasureJob]] = {}  # ok cells and their measure job
         self._samples: dict[Cell, dict[str, bytes]] = {}  # raw latencies of a measured cell, until stored
@@ -69,13 +71,26 @@ class Runner:
         todo = [p for p in chosen if p.state == "run" and (force or not self.is_done(p))]
         counts = {"ok": 0, "skipped": 0, "failed": 0,
                   "cached": len([p for p in chosen if p.state == "run"]) - len(todo)}
-        begin, started = time.monotonic(), _now()
+        begin = time.monotonic()
+        run = self.store.begin_run(str(self.matrix.path), self.host, environment.run_versions(), self.label, _now())
+        self.run_id = run.id
+        completed = False
+        try:
+            self._run_cells(chosen, todo, counts)
+            completed = True
+        finally:
+            self.store.end_run(run.id, _now(), {"wall_s": round(time.monotonic() - begin, 1), "counts": counts,
+                                                "completed": completed})
+        return counts
+
+    def _run_cells(self, chosen: list[CellPlan], todo: list[CellPlan], counts: dict[str, int]) -> None:
         with RunProgress(self.console, len(todo) * self.matrix.settings.passes) as progress:
-            skipped = [self._record(p, "skipped", p.reason, _now()) for p in chosen
-                       if p.state == "skip" and not self.is_done(p)]  # keep a current ok result (a GPU box's)
-            for record in skipped:
-                self.store.put(record)
-            progress.skipped(skipped)
+            skipped = [p for p in chosen if p.state == "skip" and not self.is_done(p)]  # keep a GPU box's ok
+            records = [self._record(p, "skipped", p.reason, _now()) for p in skipped]
+            for p, record in zip(skipped, records):
+                if not self._skipped_before(p):
+                    self.store.put(record)
+            progress.skipped(records)
             counts["skipped"] = len(skipped)
             for model in self.matrix.models:
                 cells = [p for p in todo if p.cell.model == model.name]
@@ -84,10 +99,6 @@ class Runner:
                         counts[record.status] += 1
             for number in range(2, self.matrix.settings.passes + 1):
                 self._pass(number, progress)
-        self.store.put_fact("run", "last", {"matrix": str(self.matrix.path), "started_at": started,
-                                            "finished_at": _now(), "wall_s": round(time.monotonic() - begin, 1),
-                                            "counts": counts})
-        return counts
 
     def _run_model(self, model: ModelPlan, cells: list[CellPlan], progress: RunProgress):
         prepared = self._prepare(model, progress)
@@ -194,15 +205,22 @@ class Runner:
         return record
 
     def is_done(self, p: CellPlan) -> bool:
-        record = self.store.get(p.cell) if self.store else None
+        """Whether this host's newest record of the cell is an ok one of the same fingerprint, every pass made."""
+        record = self.store.latest(p.cell, self.host) if self.store else None
         return (record is not None and record.status == "ok" and record.fingerprint == p.fingerprint
                 and len(record.metrics.get("latency_passes_p50", [0])) >= self.matrix.settings.passes)
+
+    def _skipped_before(self, p: CellPlan) -> bool:
+        """Whether this host's newest record of a cell to skip already skips it for the same reason."""
+        record = self.store.latest(p.cell, self.host)
+        return record is not None and (record.status, record.reason, record.fingerprint) == (
+            "skipped", p.reason, p.fingerprint)
 
     def _record(self, p: CellPlan, status: str, reason: str | None, started: str, metrics: dict | None = None,
                 env: dict | None = None, artifact: str | None = None) -> CellRecord:
         return CellRecord(cell=p.cell, status=status, reason=reason, metrics=metrics or {}, artifact_path=artifact,
                           env=env or environment.capture(), started_at=started, finished_at=_now(),
-                          fingerprint=p.fingerprint, matrix=str(self.matrix.path))
+                          fingerprint=p.fingerprint, matrix=str(self.matrix.path), run_id=self.run_id)
 
 
 def _samples(measured: dict[str, Any]) -> dict[str, bytes]:

@@ -1,11 +1,11 @@
-"""ResultStore: SQLite file holding one record per cell (written as each cell ends), the raw latencies of
-each ok cell, and run facts."""
+"""ResultStore: an SQLite file of runs, the cell records each run wrote (appended as each cell ends, never
+overwritten by a later run), the raw latencies of ok records, and facts about models and data."""
 
 from __future__ import annotations
 
 import json
-import os
 import sqlite3
+import uuid
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -17,28 +17,28 @@ import numpy as np
 from bench_matrix.cell import Cell
 from bench_matrix.errors import UserError
 from bench_matrix.measure.stats import unpack_samples
-from bench_matrix.workspace import not_regular
+from bench_matrix.store_format import (
+    RECORD_COLUMNS,
+    RUN_COLUMNS,
+    STORE_VERSION,
+    create_tables,
+    file_problem,
+    is_format_1,
+    migrate_format_1,
+    schema_problem,
+    tables,
+)
 
-STORE_VERSION = 1  # PRAGMA user_version of a results file; 0 (unset) is the same; `samples` is an added table
-SQLITE_MAGIC = b"SQLite format 3\0"
 Status = Literal["ok", "skipped", "failed"]
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS results (
-    key TEXT PRIMARY KEY, fingerprint TEXT NOT NULL, matrix TEXT NOT NULL,
-    model TEXT NOT NULL, framework TEXT NOT NULL, backend TEXT NOT NULL, strategy TEXT NOT NULL,
-    precision TEXT NOT NULL, target TEXT NOT NULL, status TEXT NOT NULL, reason TEXT,
-    metrics TEXT NOT NULL, artifact_path TEXT, env TEXT NOT NULL, started_at TEXT, finished_at TEXT
-);
-CREATE TABLE IF NOT EXISTS facts (scope TEXT NOT NULL, name TEXT NOT NULL, value TEXT NOT NULL,
-                                  PRIMARY KEY (scope, name));
-CREATE TABLE IF NOT EXISTS samples (key TEXT NOT NULL, series TEXT NOT NULL, data BLOB NOT NULL,
-                                    PRIMARY KEY (key, series));
-"""
+_SELECT_RECORD = f"SELECT id, {', '.join(RECORD_COLUMNS)} FROM records"
+_CELL_ORDER = "model, backend, strategy, precision, target, host"
+# newest first among the records of one cell on one host
+_NEWEST = "COALESCE(finished_at, started_at, '') DESC, id DESC"
 
 
 @dataclass
 class CellRecord:
-    """The stored outcome of one cell; `to_json` is the record format of `report --format json`."""
+    """The stored outcome of one cell in one run; `to_json` is the record format of `report --format json`."""
 
     cell: Cell
     status: Status
@@ -50,6 +50,8 @@ class CellRecord:
     finished_at: str | None = None
     fingerprint: str = ""
     matrix: str = ""
+    run_id: int | None = None  # the run that wrote it; None until stored
+    id: int | None = None  # its row in the store; None until stored
 
     @property
     def host(self) -> str | None:
@@ -60,34 +62,89 @@ class CellRecord:
         return {"cell": self.cell.as_dict(), "host": self.host, "status": self.status, "reason": self.reason,
                 "metrics": self.metrics, "artifact_path": self.artifact_path, "env": self.env,
                 "started_at": self.started_at, "finished_at": self.finished_at,
-                "fingerprint": self.fingerprint, "matrix": self.matrix}
+                "fingerprint": self.fingerprint, "matrix": self.matrix, "run": self.run_id, "record": self.id}
+
+
+@dataclass(frozen=True)
+class RunInfo:
+    """One `bench-matrix run`: what it ran, where, when, with which versions, and its optional user label."""
+
+    id: int
+    uid: str
+    matrix: str
+    host: str
+    label: str | None
+    started_at: str
+    finished_at: str | None
+    versions: dict[str, Any]
+    summary: dict[str, Any]
+
+    @property
+    def name(self) -> str:
+        return f"run {self.id}" + (f" ({self.label})" if self.label else "")
 
 
 class ResultStore:
     """A results database; every write is committed at once so an interrupted run loses nothing.
 
-    `readonly` opens an existing store without changing it; `label` names the file in messages."""
+    `readonly` opens an existing store without changing it (a store of an earlier format is migrated in
+    memory); `label` names the file in messages."""
 
     def __init__(self, path: str | Path, readonly: bool = False, label: str = "results file"):
         self.path, self._label = Path(path), label
-        problem = _file_problem(self.path, readonly)
+        problem = file_problem(self.path, readonly)
         if problem:
             raise UserError(f"{label} {self.path}: {problem}")
         with self._errors("cannot open it", "check the path and the permissions of its folder"):
-            self._db = (sqlite3.connect(f"{self.path.absolute().as_uri()}?mode=ro", uri=True, timeout=30)
-                        if readonly else sqlite3.connect(self.path, timeout=30))
+            self._db = (sqlite3.connect(f"{self.path.absolute().as_uri()}?mode=ro", uri=True, timeout=30,
+                                        isolation_level=None)
+                        if readonly else sqlite3.connect(self.path, timeout=30, isolation_level=None))
         try:
             with self._errors("not a bench-matrix results store"):
-                problem = _schema_problem(self._db)
-                self._empty = readonly and not _tables(self._db)  # an empty file, read: no results
-                if not problem and not readonly:
-                    self._db.execute("PRAGMA journal_mode=WAL")
-                    self._db.executescript(_SCHEMA + f"PRAGMA user_version = {STORE_VERSION};")
-            if problem:
-                raise UserError(f"{label} {self.path}: {problem}")
+                self._open(readonly)
         except UserError:
             self._db.close()
             raise
+
+    def _open(self, readonly: bool) -> None:
+        problem = schema_problem(self._db)
+        if problem:
+            raise UserError(f"{self._label} {self.path}: {problem}")
+        self._empty = readonly and not tables(self._db)  # an empty file, read: no results
+        if readonly and is_format_1(self._db):
+            memory = sqlite3.connect(":memory:", isolation_level=None)
+            self._db.backup(memory)
+            self._db.close()
+            self._db = memory
+        if not readonly or is_format_1(self._db):
+            if not readonly:
+                self._db.execute("PRAGMA journal_mode=WAL")
+            with self._transaction():
+                if is_format_1(self._db):
+                    migrate_format_1(self._db)
+                create_tables(self._db)
+                self._db.execute(f"PRAGMA user_version = {STORE_VERSION}")
+
+    @contextmanager
+    def _transaction(self) -> Iterator[None]:
+        """One atomic write (BEGIN IMMEDIATE: concurrent writers wait for each other, up to the timeout);
+        nested in `atomic`, part of the enclosing one."""
+        if self._db.in_transaction:
+            yield
+            return
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            yield
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
+        self._db.execute("COMMIT")
+
+    @contextmanager
+    def atomic(self) -> Iterator[None]:
+        """Several writes that land together or not at all."""
+        with self._errors("cannot write a result"), self._transaction():
+            yield
 
     @contextmanager
     def _errors(self, doing: str, hint: str = "repair or move the file away, or choose another results file"
@@ -101,48 +158,106 @@ class ResultStore:
     def close(self) -> None:
         self._db.close()
 
-    def put(self, record: CellRecord, samples: Mapping[str, bytes] | None = None) -> None:
-        """Write a record; with `samples` (series name -> stats.pack_samples bytes) replace its raw latencies
-        in the same transaction. Without, an ok record keeps the stored ones; any other status drops them."""
-        c = record.cell
-        with self._errors("cannot write a result"), self._db:
-            self._db.execute(
-                "INSERT OR REPLACE INTO results VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
-                (c.key, record.fingerprint, record.matrix, c.model, c.framework, c.backend, c.strategy,
-                 c.precision, c.target, record.status, record.reason, json.dumps(record.metrics),
-                 record.artifact_path, json.dumps(record.env), record.started_at, record.finished_at))
-            if samples is not None or record.status != "ok":
-                self._db.execute("DELETE FROM samples WHERE key = ?", (c.key,))
-            self._db.executemany("INSERT INTO samples VALUES (?,?,?)",
-                                 [(c.key, series, blob) for series, blob in (samples or {}).items()])
+    def begin_run(self, matrix: str, host: str, versions: Mapping[str, Any], label: str | None = None,
+                  started_at: str = "", uid: str | None = None) -> RunInfo:
+        """Record the start of a run; its records are written with its id."""
+        values = (uid or uuid.uuid4().hex, matrix, host, label, started_at, None, json.dumps(dict(versions)),
+                  "{}")
+        with self._errors("cannot write a result"), self._transaction():
+            cursor = self._db.execute(f"INSERT INTO runs ({', '.join(RUN_COLUMNS)}) VALUES (?,?,?,?,?,?,?,?)",
+                                      values)
+        return self.run(cursor.lastrowid)
 
-    def samples(self, cell: Cell, series: str = "latency_ms") -> np.ndarray | None:
-        """The cell's raw per-iteration latencies in ms (float32, in timing order) of `series` ("latency_ms",
-        or "latency_ms_e2e" on a GPU); None when none are stored (older stores, skipped or failed cells)."""
-        if self._empty or "samples" not in _tables(self._db):
+    def end_run(self, run_id: int, finished_at: str | None, summary: Mapping[str, Any]) -> None:
+        with self._errors("cannot write a result"), self._transaction():
+            self._db.execute("UPDATE runs SET finished_at = ?, summary = ? WHERE id = ?",
+                             (finished_at, json.dumps(dict(summary)), run_id))
+
+    def put(self, record: CellRecord, samples: Mapping[str, bytes] | None = None) -> int:
+        """Append a record to its run (`record.run_id`), or update it when it was stored before (a later pass
+        of the same run); with `samples` (series -> stats.pack_samples bytes) replace its raw latencies.
+        Without, an ok record keeps its stored ones; any other status drops them. Returns the record's id."""
+        if record.run_id is None:
+            raise ValueError(f"record of {record.cell.key} has no run")
+        c = record.cell
+        values = {"run_id": record.run_id, "key": c.key, "host": record.host or "unknown",
+                  "fingerprint": record.fingerprint, "matrix": record.matrix, **c.as_dict(),
+                  "status": record.status, "reason": record.reason, "metrics": json.dumps(record.metrics),
+                  "artifact_path": record.artifact_path, "env": json.dumps(record.env),
+                  "started_at": record.started_at, "finished_at": record.finished_at}
+        row = [values[name] for name in RECORD_COLUMNS]
+        with self._errors("cannot write a result"), self._transaction():
+            if record.id is None:
+                record.id = self._db.execute(f"INSERT INTO records ({', '.join(RECORD_COLUMNS)}) VALUES "
+                                             f"({', '.join('?' * len(row))})", row).lastrowid
+            else:
+                self._db.execute(f"UPDATE records SET {', '.join(f'{n} = ?' for n in RECORD_COLUMNS)} "
+                                 f"WHERE id = ?", (*row, record.id))
+            if samples is not None or record.status != "ok":
+                self._db.execute("DELETE FROM samples WHERE record_id = ?", (record.id,))
+            self._db.executemany("INSERT INTO samples VALUES (?,?,?)",
+                                 [(record.id, series, blob) for series, blob in (samples or {}).items()])
+        return record.id
+
+    def samples(self, record: CellRecord, series: str = "latency_ms") -> np.ndarray | None:
+        """The record's raw per-iteration latencies in ms (float32, in timing order) of `series`
+        ("latency_ms", or "latency_ms_e2e" on a GPU); None when none are stored (skipped or failed cells)."""
+        if self._empty or record.id is None:
             return None
         with self._errors("cannot read results"):
-            row = self._db.execute("SELECT data FROM samples JOIN results USING (key) WHERE key = ? AND "
-                                   "series = ? AND status = 'ok'", (cell.key, series)).fetchone()
+            row = self._db.execute("SELECT data FROM samples WHERE record_id = ? AND series = ?",
+                                   (record.id, series)).fetchone()
         return unpack_samples(row[0]) if row else None
 
-    def get(self, cell: Cell) -> CellRecord | None:
-        if self._empty:
-            return None
-        with self._errors("cannot read results"):
-            row = self._db.execute(f"SELECT {_COLUMNS} FROM results WHERE key = ?", (cell.key,)).fetchone()
-        return _record(row) if row else None
+    def latest(self, cell: Cell, host: str) -> CellRecord | None:
+        """The newest record of `cell` measured (or skipped) on `host`, from any run."""
+        rows = self._select(f"{_SELECT_RECORD} WHERE key = ? AND host = ? ORDER BY {_NEWEST} LIMIT 1",
+                            (cell.key, host))
+        return rows[0] if rows else None
 
-    def records(self) -> list[CellRecord]:
+    def records(self, run: int | None = None) -> list[CellRecord]:
+        """The records of one run, or (by default) the newest record of every cell on every host."""
+        if run is not None:
+            return self._select(f"{_SELECT_RECORD} WHERE run_id = ? ORDER BY {_CELL_ORDER}", (run,))
+        newest = (f"SELECT *, ROW_NUMBER() OVER (PARTITION BY key, host ORDER BY {_NEWEST}) AS newness "
+                  f"FROM records")
+        return self._select(f"SELECT id, {', '.join(RECORD_COLUMNS)} FROM ({newest}) WHERE newness = 1 "
+                            f"ORDER BY {_CELL_ORDER}", ())
+
+    def _select(self, query: str, parameters: tuple) -> list[CellRecord]:
         if self._empty:
             return []
         with self._errors("cannot read results"):
-            rows = self._db.execute(f"SELECT {_COLUMNS} FROM results ORDER BY model, backend, strategy, "
-                                    "precision, target").fetchall()
-        return [_record(r) for r in rows]
+            return [_record(row) for row in self._db.execute(query, parameters).fetchall()]
+
+    def runs(self) -> list[RunInfo]:
+        """Every run, oldest first."""
+        if self._empty:
+            return []
+        with self._errors("cannot read results"):
+            rows = self._db.execute(f"SELECT id, {', '.join(RUN_COLUMNS)} FROM runs "
+                                    f"ORDER BY started_at, id").fetchall()
+        return [_run(row) for row in rows]
+
+    def run(self, run_id: int) -> RunInfo:
+        return self.find_run(str(run_id))
+
+    def find_run(self, spec: str) -> RunInfo:
+        """A run by id, `latest`, `previous` (the one before the latest) or label (its newest run)."""
+        runs = self.runs()
+        text = spec.strip()
+        found = ([r for r in runs if str(r.id) == text] if text.isdigit() else
+                 runs[-1:] if text == "latest" else runs[-2:-1] if text == "previous" else
+                 [r for r in runs if r.label == text][-1:])
+        if not found:
+            held = ", ".join(r.name for r in runs[-8:]) or "none"
+            raise UserError(f"{self._label} {self.path}: no run {spec!r}; name a run by its id, its label, "
+                            f"`latest` or `previous` (its runs{', newest last' if runs else ''}: {held}; "
+                            f"`bench-matrix runs` lists them all)")
+        return found[0]
 
     def put_fact(self, scope: str, name: str, value: Any) -> None:
-        with self._errors("cannot write a result"), self._db:
+        with self._errors("cannot write a result"), self._transaction():
             self._db.execute("INSERT OR REPLACE INTO facts VALUES (?,?,?)", (scope, name, json.dumps(value)))
 
     def facts(self, scope: str) -> dict[str, Any]:
@@ -152,70 +267,32 @@ class ResultStore:
             rows = self._db.execute("SELECT name, value FROM facts WHERE scope = ?", (scope,)).fetchall()
         return {name: json.loads(value) for name, value in rows}
 
+    def all_facts(self) -> list[tuple[str, str, Any]]:
+        """Every fact as (scope, name, value)."""
+        if self._empty:
+            return []
+        with self._errors("cannot read results"):
+            rows = self._db.execute("SELECT scope, name, value FROM facts ORDER BY scope, name").fetchall()
+        return [(scope, name, json.loads(value)) for scope, name, value in rows]
 
-_COLUMNS = ("model, framework, backend, strategy, precision, target, status, reason, metrics, artifact_path, "
-            "env, started_at, finished_at, fingerprint, matrix")
+    def samples_of(self, record_id: int) -> dict[str, bytes]:
+        """Every stored series of a record, packed (as `put` takes them)."""
+        with self._errors("cannot read results"):
+            rows = self._db.execute("SELECT series, data FROM samples WHERE record_id = ?", (record_id,))
+            return {series: bytes(data) for series, data in rows.fetchall()}
 
 
 def _record(row: tuple) -> CellRecord:
-    (model, framework, backend, strategy, precision, target, status, reason, metrics, artifact, env,
-     started, finished, fingerprint, matrix) = row
-    return CellRecord(cell=Cell(model, framework, backend, strategy, precision, target), status=status,
-                      reason=reason, metrics=json.loads(metrics), artifact_path=artifact, env=json.loads(env),
-                      started_at=started, finished_at=finished, fingerprint=fingerprint, matrix=matrix)
+    values = dict(zip(("id", *RECORD_COLUMNS), row))
+    cell = Cell(*(values[k] for k in ("model", "framework", "backend", "strategy", "precision", "target")))
+    return CellRecord(cell=cell, status=values["status"], reason=values["reason"],
+                      metrics=json.loads(values["metrics"]), artifact_path=values["artifact_path"],
+                      env=json.loads(values["env"]), started_at=values["started_at"],
+                      finished_at=values["finished_at"], fingerprint=values["fingerprint"],
+                      matrix=values["matrix"], run_id=values["run_id"], id=values["id"])
 
 
-def _file_problem(path: Path, readonly: bool) -> str | None:
-    """Why `path` cannot be a results file (opened read-only: must exist and hold an SQLite database)."""
-    try:
-        mode = os.stat(path).st_mode
-    except FileNotFoundError:
-        return "no such file" if readonly else _folder_problem(path.parent)
-    except OSError as error:
-        return f"cannot look at it: {error.strerror}"
-    kind = not_regular(mode)
-    if kind == "a directory":
-        return f"is a directory; give a file name such as {path / 'results.sqlite'}"
-    if kind:
-        return f"is {kind}, not a results file"
-    try:
-        with open(path, "rb") as file:
-            header = file.read(len(SQLITE_MAGIC))
-    except OSError as error:
-        return f"cannot read it: {error.strerror}"
-    if header and header != SQLITE_MAGIC:
-        return "not a bench-matrix results store: it is not an SQLite database; choose another file"
-    if not readonly and not os.access(path, os.W_OK):
-        return "the file is read-only; make it writable or choose another file"
-    return None
-
-
-def _folder_problem(folder: Path) -> str | None:
-    if not folder.is_dir():
-        return f"the folder {folder} does not exist; create it or choose another path"
-    if not os.access(folder, os.W_OK | os.X_OK):
-        return f"cannot create it: the folder {folder} is not writable"
-    return None
-
-
-def _tables(db: sqlite3.Connection) -> set[str]:
-    return {name for (name,) in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
-
-
-def _schema_problem(db: sqlite3.Connection) -> str | None:
-    """Why an open SQLite database is not a results store this version can use, or None."""
-    version = db.execute("PRAGMA user_version").fetchone()[0]
-    if version > STORE_VERSION:
-        return (f"written by a newer bench-matrix (results format {version}; this one reads "
-                f"{STORE_VERSION}): upgrade bench-matrix or choose another results file")
-    tables = _tables(db)
-    if tables and "results" not in tables:
-        return (f"an SQLite database, but not a bench-matrix results store (its tables: "
-                f"{', '.join(sorted(tables))}); choose another file")
-    columns = {row[1] for row in db.execute("PRAGMA table_info(results)")}
-    missing = [c for c in _COLUMNS.replace(" ", "").split(",") if c not in columns] if columns else []
-    if missing:
-        return (f"written by an older bench-matrix (its results table lacks {', '.join(missing)}); move it "
-                f"away or choose another results file, and run again")
-    check = db.execute("PRAGMA quick_check").fetchone()[0]
-    return None if check == "ok" else f"the database is damaged ({check}); restore it or choose another file"
+def _run(row: tuple) -> RunInfo:
+    values = dict(zip(("id", *RUN_COLUMNS), row))
+    return RunInfo(**{**values, "versions": json.loads(values["versions"]),
+                      "summary": json.loads(values["summary"])})

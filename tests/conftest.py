@@ -87,6 +87,15 @@ def matrix_text(backends: list[str], strategies: list[str], precisions: list[str
             + FAST_SETTINGS + extra)
 
 
+def install_slow_plugin(root: Path) -> dict[str, str]:
+    """tests/plugin_slow.py installed as pip would (a .dist-info with its entry point); the CLI's env."""
+    dist = root / "site" / "slow_ort-0.1.dist-info"
+    dist.mkdir(parents=True)
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: slow-ort\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text("[bench_matrix.backends]\nslow_ort = plugin_slow:SlowOrtBackend\n")
+    return {"PYTHONPATH": os.pathsep.join([str(root / "site"), str(TESTS), os.environ.get("PYTHONPATH", "")])}
+
+
 def cli(project: Path, *args: str, env: dict[str, str] | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
     """Run `bench-matrix` as a user would, in the project directory, with its own workspace."""
     return subprocess.run([sys.executable, "-m", "bench_matrix.cli", "--workspace", str(project / "ws"), *args],

@@ -1,9 +1,10 @@
-"""A third-party backend for the real-time closed-loop test: ONNX Runtime with a fixed delay added to every
-inference, an artificially slowed brain (as a slow target would be); installed as a .dist-info with an entry
-point, like tests/plugin_npu.py."""
+"""A third-party backend for the real-time closed-loop and the compare tests: ONNX Runtime with a fixed delay
+added to every inference, an artificially slowed brain (as a slow target would be) or a planted regression;
+installed as a .dist-info with an entry point, like tests/plugin_npu.py."""
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -13,7 +14,9 @@ import numpy as np
 from bench_matrix.backends.base import Session
 from bench_matrix_backends.onnxruntime import OnnxRuntimeBackend
 
-DELAY_S = 0.25  # from about 0.2 s on, the late commands visibly worsen the driving (docs/closed-loop.md)
+# from about 0.2 s on, the late commands visibly worsen the driving (docs/closed-loop.md); $SLOW_ORT_DELAY_MS
+# sets another delay (0: none)
+DELAY_S = float(os.environ.get("SLOW_ORT_DELAY_MS", "250")) / 1e3
 
 
 class SlowOrtBackend(OnnxRuntimeBackend):
@@ -38,7 +41,8 @@ class SlowSession(Session):
         return self._inner.prepare(inputs)
 
     def execute(self, prepared: Any) -> Any:
-        time.sleep(DELAY_S)
+        if DELAY_S:
+            time.sleep(DELAY_S)
         return self._inner.execute(prepared)
 
     def fetch(self, outputs: Any) -> list[np.ndarray]:

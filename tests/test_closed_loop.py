@@ -5,12 +5,11 @@ PilotNet in lock-step (completes, deterministic) and in real time against an art
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import pytest
 
-from conftest import FAST_SETTINGS, TESTS, cli, matrix_text
+from conftest import FAST_SETTINGS, cli, install_slow_plugin, matrix_text
 
 PILOTNET = """\
 models: [{{name: pilotnet, framework: pytorch, builtin: pilotnet{training}}}]
@@ -27,15 +26,6 @@ def pilotnet_matrix(backends: str, closed_loop: str, samples: int = 4000, circui
                     training: str = "") -> str:
     return (PILOTNET.format(backends=backends, samples=samples, circuits=circuits, training=training)
             + FAST_SETTINGS.replace("}\n", ", eval_samples: 64}\n") + closed_loop)
-
-
-def install_slow_plugin(root: Path) -> dict[str, str]:
-    """tests/plugin_slow.py installed as pip would (a .dist-info with its entry point); the CLI's env."""
-    dist = root / "site" / "slow_ort-0.1.dist-info"
-    dist.mkdir(parents=True)
-    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: slow-ort\nVersion: 0.1\n")
-    (dist / "entry_points.txt").write_text("[bench_matrix.backends]\nslow_ort = plugin_slow:SlowOrtBackend\n")
-    return {"PYTHONPATH": os.pathsep.join([str(root / "site"), str(TESTS), os.environ.get("PYTHONPATH", "")])}
 
 
 def records(project: Path, env: dict[str, str] | None = None) -> dict[str, dict]:
@@ -72,9 +62,9 @@ def test_cli_drives_a_small_pilotnet_on_the_oval_and_reports_it(tmp_path: Path) 
     assert out.returncode == 0, out.stderr
     page = (tmp_path / "pages" / "pilotnet.md").read_text()
     plot = "trajectory-pilotnet__onnxruntime__none__fp32__cpu.png"
-    assert "## Closed loop" in page and f"]({plot})" in page
+    assert "## Closed loop" in page and f"](plots/{plot})" in page
     assert "| onnxruntime none fp32 | oval | lock-step |" in page
-    assert (tmp_path / "pages" / plot).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / "pages" / "plots" / plot).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 @pytest.mark.slow

@@ -145,7 +145,9 @@ def scratch(project: Path) -> Path:
         (folder / "notes.txt").write_text("not a database\n" * 100)
         (folder / "a-file").write_text("x")
         store = ResultStore(folder / "results.sqlite")
-        store.put(CellRecord(Cell("tiny", "onnx", "onnxruntime", "none", "fp32", "cpu"), "skipped", "fuzz"))
+        run = store.begin_run("m.yaml", "fuzz", {})
+        store.put(CellRecord(Cell("tiny", "onnx", "onnxruntime", "none", "fp32", "cpu"), "skipped", "fuzz",
+                             run_id=run.id))
         store.close()
     return folder
 

@@ -324,7 +324,7 @@ def stores(tmp_path: Path) -> Path:
     ("text.sqlite", "not a bench-matrix results store: it is not an SQLite database"),
     ("truncated.sqlite", "not a bench-matrix results store (database disk image is malformed)"),
     ("other.sqlite", "an SQLite database, but not a bench-matrix results store (its tables: contacts)"),
-    ("newer.sqlite", "written by a newer bench-matrix (results format 9; this one reads 1)"),
+    ("newer.sqlite", "written by a newer bench-matrix (results format 9; this one reads 2)"),
     ("missing/r.sqlite", "the folder"),
 ])
 def test_results_option_problems(stores, capsys, command, name, message):

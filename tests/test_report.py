@@ -39,7 +39,14 @@ def _record(cell: Cell, status: Status = "ok", reason: str | None = None, metric
             env: dict[str, Any] | None = None) -> CellRecord:
     return CellRecord(cell=cell, status=status, reason=reason, metrics=metrics or {}, env=ENV if env is None else env,
                       started_at="2024-05-01T10:00:00", finished_at="2024-05-01T10:00:05", fingerprint="f",
-                      matrix="matrix.yaml")
+                      matrix="matrix.yaml", run_id=1)
+
+
+def new_store(path: Path) -> ResultStore:
+    """A new store holding run 1 (of matrix.yaml on bench-1), which `_record`'s records belong to."""
+    store = ResultStore(path)
+    store.begin_run("matrix.yaml", "bench-1", {"bench_matrix": "0.1.0"}, started_at="2024-05-01T10:00:00")
+    return store
 
 
 PILOT_BASE = Cell("pilotnet", "pytorch", "pytorch", "none", "fp32", "cpu")
@@ -54,7 +61,7 @@ TINY_ORT = Cell("tiny", "pytorch", "onnxruntime", "none", "fp32", "cpu")
 @pytest.fixture
 def store_path(tmp_path: Path) -> Path:
     path = tmp_path / "results.sqlite"
-    store = ResultStore(path)
+    store = new_store(path)
     other_env = {**ENV, "host": "bench-2", "libraries": {"torch": "2.5.0", "onnxruntime": "1.18.0"}}
     for record in (
         _record(PILOT_BASE, metrics=_metrics(2.0, 4.0, 0.0123)),
@@ -70,9 +77,7 @@ def store_path(tmp_path: Path) -> Path:
         "framework": "pytorch", "source": "builtin pilotnet", "params": 252219, "baseline_key": PILOT_BASE.key,
         "test_mse": 0.0123, "mean_predictor_mse": 0.0615, "test_samples": 1000,
         "training": {"epochs": 10, "train_s": 42.0}})
-    store.put_fact("run", "last", {"matrix": "matrix.yaml", "started_at": "2024-05-01T10:00:00",
-                                   "finished_at": "2024-05-01T10:01:00", "wall_s": 60.0,
-                                   "counts": {"ok": 4, "skipped": 1, "failed": 2}})
+    store.end_run(1, "2024-05-01T10:01:00", {"wall_s": 60.0, "counts": {"ok": 4, "skipped": 1, "failed": 2}})
     store.close()
     return path
 
@@ -82,7 +87,7 @@ def _console() -> Console:
 
 
 def test_speedup_size_ratio_and_mse_delta(store_path: Path) -> None:
-    _, report = load(store_path)
+    report = load(store_path).report
     pilot = report.models[0]
     rows = {row.record.cell.key: row for row in pilot.rows}
     assert [row.record.cell for row in pilot.rows][:2] == [PILOT_BASE, PILOT_PTQ]  # baseline first, then by p50
@@ -105,7 +110,7 @@ def test_markdown_pages(store_path: Path, tmp_path: Path) -> None:
     assert paths == [out / "index.md", out / "pilotnet.md", out / "tiny.md"]
     index = (out / "index.md").read_text()
     assert "[pilotnet](pilotnet.md)" in index and "[tiny](tiny.md)" in index
-    assert "Last run: matrix matrix.yaml" in index and "Host**: bench-1 / bench-2" in index
+    assert "Run 1 of 1 in the store: matrix matrix.yaml on bench-1" in index and "Host**: bench-1 / bench-2" in index
     assert "> - library versions differ between cells: torch (2.4.0, 2.5.0)" in index
     page = (out / "pilotnet.md").read_text()
     # size ratio 2×; not fine-tuned: dashes in the fine-tuning columns this model's table has
@@ -132,7 +137,7 @@ def test_table_prints_tables_and_writes_markdown(store_path: Path, tmp_path: Pat
     console = _console()
     paths = write_report(store_path, "table", tmp_path / "reports", console)
     text = console.export_text()
-    assert len(paths) == 3 and all(p.is_file() for p in paths)
+    assert len(paths) == 4 and all(p.is_file() for p in paths) and paths[-1].name == "report.html"
     assert "onnxruntime none fp32" in text and "2.00×" in text
     assert "no NVIDIA GPU on this machine" in text
     assert "RuntimeError: int8 | kernel missing" in text and "convert.py" not in text  # failed: the error line only
@@ -148,7 +153,8 @@ def test_json_is_the_records(store_path: Path, tmp_path: Path, capsys: pytest.Ca
     data = json.loads(capsys.readouterr().out)
     assert len(data) == 7
     assert set(data[0]) == {"cell", "status", "reason", "metrics", "artifact_path", "env", "started_at",
-                            "finished_at", "fingerprint", "matrix", "host"}
+                            "finished_at", "fingerprint", "matrix", "host", "run", "record"}
+    assert {d["run"] for d in data} == {1} and len({d["record"] for d in data}) == 7
     assert {d["cell"]["model"] for d in data} == {"pilotnet", "tiny"}
 
 
@@ -163,6 +169,7 @@ def test_csv_one_flat_row_per_record(store_path: Path, tmp_path: Path) -> None:
         assert column in CSV_COLUMNS
     ort = next(r for r in rows if r["key"] == PILOT_ORT.key)
     assert float(ort["speedup_vs_baseline"]) == 2.0 and float(ort["size_mib"]) == 2.0 and ort["threads"] == "4"
+    assert (ort["host"], ort["run"]) == ("bench-1", "1")
     tuned = next(r for r in rows if r["key"] == PILOT_PTQ.key)
     assert (tuned["sparsity"], tuned["clusters"], tuned["finetune_s"]) == ("0.5", "16", "12")
     assert ort["sparsity"] == ""
@@ -173,7 +180,7 @@ def test_csv_one_flat_row_per_record(store_path: Path, tmp_path: Path) -> None:
 
 def test_model_without_facts_or_baseline(tmp_path: Path) -> None:
     path = tmp_path / "r.sqlite"
-    store = ResultStore(path)
+    store = new_store(path)
     store.put(_record(PILOT_ORT, metrics={"latency_ms": {"p50": 1.0}}, env={}))
     store.put(_record(PILOT_BASE, "failed", None, env={}))
     store.close()
@@ -197,8 +204,8 @@ def test_missing_and_empty_store(tmp_path: Path, fmt: str) -> None:
 
 
 def test_unknown_format(store_path: Path, tmp_path: Path) -> None:
-    with pytest.raises(UserError, match="table, md, json, csv"):
-        write_report(store_path, "html", tmp_path, _console())
+    with pytest.raises(UserError, match="table, md, html, json, csv"):
+        write_report(store_path, "pdf", tmp_path, _console())
 
 
 def test_report_imports_no_framework(store_path: Path, tmp_path: Path) -> None:
@@ -221,7 +228,7 @@ def test_not_a_store(tmp_path: Path) -> None:
 
 def test_unsteady_latency_of_a_record_before_interference_was_measured_is_marked(tmp_path: Path) -> None:
     path = tmp_path / "r.sqlite"
-    store = ResultStore(path)
+    store = new_store(path)
     store.put(_record(PILOT_BASE, metrics={"latency_ms": {"p50": 2.0}, "latency_stability": 0.01}, env={}))
     store.put(_record(PILOT_ORT, metrics={"latency_ms": {"p50": 1.0}, "latency_stability": 0.3}, env={}))
     store.close()
@@ -253,7 +260,7 @@ def _timed(p50: float, latency: dict[str, Any]) -> dict[str, Any]:
 
 def test_a_cell_flagged_for_interference_is_marked_in_every_format(tmp_path: Path) -> None:
     path = tmp_path / "r.sqlite"
-    store = ResultStore(path)
+    store = new_store(path)
     clean = {"attempts": [_attempt(0.45), _attempt(0.01)], "kept": 1}  # re-measured, then clean
     store.put(_record(PILOT_BASE, metrics=_timed(2.0, clean)))
     store.put(_record(PILOT_ORT, metrics=_timed(1.0, {"attempts": [_attempt(0.45)] * 3, "kept": 2})))

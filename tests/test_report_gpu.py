@@ -7,11 +7,10 @@ import csv
 from pathlib import Path
 
 from rich.console import Console
-from test_report import _metrics, _record
+from test_report import _metrics, _record, new_store
 
 from bench_matrix.cell import Cell
 from bench_matrix.report import load, write_report
-from bench_matrix.store import ResultStore
 
 BASE = Cell("pilotnet", "pytorch", "pytorch", "none", "fp32", "cpu")
 CUDA32 = Cell("pilotnet", "pytorch", "pytorch", "none", "fp32", "cuda")
@@ -27,7 +26,7 @@ def _gpu(p50: float, e2e: float, sha: str) -> dict:
 
 def _store(tmp_path: Path, fp16_sha: str) -> Path:
     path = tmp_path / "results.sqlite"
-    store = ResultStore(path)
+    store = new_store(path)
     store.put(_record(BASE, metrics={**_metrics(2.0, 4.0, 0.0123), "outputs_sha256": "a" * 64}))
     store.put(_record(CUDA32, metrics=_gpu(0.30, 0.41, "b" * 64)))
     store.put(_record(TS32, metrics=_gpu(0.25, 0.36, "b" * 64)))  # same precision, same bits: legitimate
@@ -39,7 +38,7 @@ def _store(tmp_path: Path, fp16_sha: str) -> Path:
 
 
 def test_bit_identical_outputs_at_different_precisions_are_suspect(tmp_path: Path) -> None:
-    _, report = load(_store(tmp_path, "b" * 64))
+    report = load(_store(tmp_path, "b" * 64)).report
     (suspect,) = report.models[0].suspects
     assert "fp16 and fp32" in suspect and CUDA16.key in suspect and CUDA32.key in suspect and TS32.key in suspect
     assert BASE.key not in suspect and TRT16.key not in suspect
@@ -50,7 +49,7 @@ def test_bit_identical_outputs_at_different_precisions_are_suspect(tmp_path: Pat
 
 
 def test_distinct_outputs_are_not_suspect(tmp_path: Path) -> None:
-    _, report = load(_store(tmp_path, "d" * 64))
+    report = load(_store(tmp_path, "d" * 64)).report
     assert report.models[0].suspects == ()
     write_report(tmp_path / "results.sqlite", "md", tmp_path / "reports", Console(record=True))
     assert "Suspect" not in (tmp_path / "reports/pilotnet.md").read_text()

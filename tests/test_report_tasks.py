@@ -10,11 +10,10 @@ from typing import Any
 
 import pytest
 from rich.console import Console
-from test_report import _record
+from test_report import _record, new_store
 
 from bench_matrix.cell import Cell
 from bench_matrix.report import load, write_report
-from bench_matrix.store import ResultStore
 
 MIB = 2**20
 NET_BASE = Cell("net", "pytorch", "pytorch", "none", "fp32", "cpu")
@@ -32,7 +31,7 @@ def _metrics(p50: float, **accuracy: Any) -> dict[str, Any]:
 @pytest.fixture
 def store_path(tmp_path: Path) -> Path:
     path = tmp_path / "results.sqlite"
-    store = ResultStore(path)
+    store = new_store(path)
     store.put(_record(NET_BASE, metrics=_metrics(2.0, top1=0.85, top5=0.99, top1_agreement=1.0,
                                                  max_abs_diff_vs_baseline=0.0, cosine_similarity=1.0,
                                                  snr_db=300.0)))
@@ -61,7 +60,7 @@ def _header(page: str) -> list[str]:
 
 
 def test_accuracy_delta_is_the_tasks_headline(store_path: Path) -> None:
-    _, report = load(store_path)
+    report = load(store_path).report
     encoder, net = report.models
     assert (net.task, encoder.task) == ("classification", "none")
     int8 = next(r for r in net.rows if r.record.cell == NET_INT8)
@@ -129,7 +128,7 @@ def test_csv_has_the_task_metrics(store_path: Path, tmp_path: Path) -> None:
 
 def test_old_store_without_a_task_reports_regression(tmp_path: Path) -> None:
     path = tmp_path / "r.sqlite"
-    store = ResultStore(path)
+    store = new_store(path)
     store.put(_record(NET_BASE, metrics=_metrics(2.0, mse=0.5, mae=0.6, max_abs_diff_vs_baseline=0.0)))
     store.put_fact("model:net", "info", {"framework": "pytorch", "baseline_key": NET_BASE.key,
                                          "test_mse": 0.5, "mean_predictor_mse": 1.0})
@@ -143,14 +142,14 @@ def test_old_store_without_a_task_reports_regression(tmp_path: Path) -> None:
 
 def test_missing_baseline_names_the_tasks_delta(tmp_path: Path) -> None:
     path = tmp_path / "r.sqlite"
-    store = ResultStore(path)
+    store = new_store(path)
     store.put(_record(NET_INT8, metrics=_metrics(1.0, top1=0.8)))
     store.put_fact("model:net", "info", {"framework": "pytorch", "task": "classification"})
     store.close()
     page = write_report(path, "md", tmp_path / "md", Console(record=True))[1].read_text()
     assert "speed-up, size ratio and ΔTop-1 are not available" in page
     assert "Baseline test top-1 — % vs majority-class top-1 — %" in page
-    store = ResultStore(path)
+    store = new_store(path)
     store.put_fact("model:net", "info", {"framework": "pytorch", "task": "classification",
                                          "test_metrics": {"top1": 0.5}, "majority_top1": 0.25})
     store.close()

@@ -38,7 +38,9 @@ from bench_matrix.worker import phase, waiting
 LATENCY_INPUTS = 16
 GPU_TARGETS = ("cuda", "tensorrt")  # timed compute-only and end to end; GPU name and memory recorded
 LIMITS = Limits()  # interference above these re-measures a timed phase, then flags the cell
-SAMPLED = {"latency_ms": "latency", "latency_ms_e2e": "latency_e2e"}  # stored raw series: its timed phase
+# stored raw series: the timed phase and the key of its durations (ns) in that phase's result ("" = the result)
+SAMPLED = {"latency_ms": ("latency", ""), "latency_ms_e2e": ("latency_e2e", ""),
+           "batch_ms": ("throughput", "batch_ns")}
 
 
 class NonFiniteOutputs(Exception):
@@ -117,7 +119,7 @@ def _timing_metrics(phases: dict[str, Phase[Any]]) -> dict[str, Any]:
     latency = phases["latency"]
     timing = {"latency_ms": latency_summary(latency.result),
               "latency_stability": round(drift(latency.result), 4), "latency_attempts": len(latency.attempts),
-              **phases["throughput"].result,
+              **{k: v for k, v in phases["throughput"].result.items() if k != "batch_ns"},
               "interference": interference_record(phases, LIMITS)}
     if "latency_e2e" in phases:
         timing["latency_ms_e2e"] = latency_summary(phases["latency_e2e"].result)
@@ -125,9 +127,9 @@ def _timing_metrics(phases: dict[str, Phase[Any]]) -> dict[str, Any]:
 
 
 def _packed(phases: dict[str, Phase[Any]]) -> dict[str, str]:
-    """The kept raw latencies of each sampled series, as base64 of pack_samples (compact inside the JSON)."""
-    return {name: base64.b64encode(pack_samples(phases[timed].result)).decode()
-            for name, timed in SAMPLED.items() if timed in phases}
+    """The kept raw durations of each sampled series, as base64 of pack_samples (compact inside the JSON)."""
+    return {name: base64.b64encode(pack_samples(phases[timed].result[key] if key else phases[timed].result))
+            .decode() for name, (timed, key) in SAMPLED.items() if timed in phases}
 
 
 def _reference(job: MeasureJob) -> list[np.ndarray] | None:

@@ -51,10 +51,20 @@ def library_versions() -> dict[str, str]:
     return installed_versions(*LIBRARIES)
 
 
+def host_name() -> str:
+    """The name results are stored under: $BENCH_MATRIX_HOST (containers, CI runners), else the network name."""
+    return os.environ.get("BENCH_MATRIX_HOST", "").strip() or platform.node() or "unknown"
+
+
+def run_versions() -> dict[str, str]:
+    """The tool's, Python's and the libraries' versions, recorded with each run."""
+    return {"bench_matrix": __version__, "python": sys.version.split()[0], **library_versions()}
+
+
 def capture() -> dict[str, object]:
     """A snapshot recorded with every result."""
     return {
-        "host": platform.node(), "os": f"{platform.system()} {platform.release()}", "cpu": cpu_model(),
+        "host": host_name(), "os": f"{platform.system()} {platform.release()}", "cpu": cpu_model(),
         "cores": os.cpu_count(), "cores_usable": len(allowed_cpus()), "cpu_frequency": cpu_frequency_state(),
         "memory_gb": memory_gb(), "gpus": list(nvidia_gpus()), "python": sys.version.split()[0],
         "libraries": library_versions(), "bench_matrix": __version__,

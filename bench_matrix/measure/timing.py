@@ -172,19 +172,20 @@ def _latency_figures(durations_ns: np.ndarray) -> dict[str, float]:
 
 
 def throughput(call: Callable[[Any], Any], batch: Any, batch_size: int, seconds: float,
-               sampler: Sampler | None = None) -> dict[str, float]:
-    """Samples per second at `batch_size`: two warm-up batches, then at least 3 batches and `seconds`."""
+               sampler: Sampler | None = None) -> dict[str, Any]:
+    """Samples per second at `batch_size`: two warm-up batches, then at least 3 batches and `seconds`; with
+    each batch's duration in ns ("batch_ns", raw samples kept for `compare`, not a metric)."""
     for _ in range(2):
         call(batch)
     if sampler is not None:
         sampler.start()
     clock = time.perf_counter_ns
-    n, begin = 0, clock()
-    while n < 3 or clock() - begin < seconds * 1e9:
+    stamps = [clock()]
+    while len(stamps) < 4 or stamps[-1] - stamps[0] < seconds * 1e9:
         call(batch)
-        n += 1
-    elapsed = (clock() - begin) / 1e9
-    return {"throughput_sps": batch_size * n / elapsed, "throughput_batches": n}
+        stamps.append(clock())
+    n, elapsed = len(stamps) - 1, (stamps[-1] - stamps[0]) / 1e9
+    return {"throughput_sps": batch_size * n / elapsed, "throughput_batches": n, "batch_ns": np.diff(stamps)}
 
 
 def steady_throughput(call: Callable[[Any], Any], batch: Any, batch_size: int, seconds: float, limits: Limits,

@@ -144,7 +144,7 @@ def plot_name(record: CellRecord) -> str:
 def markdown_lines(model: ModelSummary, table: Callable[[list[str], list[bool], list[list[str]]], str],
                    escape: Callable[[str], str]) -> list[str]:
     """The model page's "Closed loop" section (empty when no cell was selected for it): the simulation table,
-    its column notes, the cells not driven and each driven cell's trajectory plot."""
+    its column notes and the cells not driven (the trajectory plots are in the page's Plots section)."""
     found, skipped = laps(model), not_driven(model)
     if not found and not skipped:
         return []
@@ -155,10 +155,6 @@ def markdown_lines(model: ModelSummary, table: Callable[[list[str], list[bool], 
                   "", "Columns:", "", *(f"- **{escape(c.header)}**: {escape(c.note)}" for c in COLUMNS), ""]
     lines += [f"- not driven: {escape(record.cell.label)}: {escape(reason)}" for record, reason in skipped]
     lines += [""] if skipped else []
-    for record in driven_records(model):
-        label = escape(record.cell.label)
-        lines += [f"### Trajectories: {label}", "",
-                  f"![Driven paths of {label} over the reference line]({plot_name(record)})", ""]
     return lines
 
 

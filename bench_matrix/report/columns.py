@@ -93,6 +93,8 @@ def _ci(row: Row) -> str:
     return DASH if width is None else f"{width * 50:.1f}"
 
 
+HOST = Column("Host", "the machine that measured the cell (shown when this model's cells come from more "
+              "than one).", lambda r: r.record.host or DASH, "")
 SIZE, ACCURACY, SPEED, THROUGHPUT = "size", "accuracy", "speed", "throughput"
 LEADING: tuple[Column, ...] = (
     Column("Method", "backend, strategy and precision (and target when not cpu) of the cell.", _method, ""),
@@ -207,7 +209,45 @@ ACCURACY_COLUMNS: dict[str, tuple[Column, ...]] = {
 def model_columns(model: ModelSummary) -> tuple[Column, ...]:
     """Every column of the model's results table: its task's accuracy columns and its plugins' figures."""
     accuracy = ACCURACY_COLUMNS.get(model.task, ACCURACY_COLUMNS["none"])
-    return (*LEADING, *accuracy, *_plugin_columns(model.rows), *TRAILING)
+    host = (HOST,) if len(hosts(model)) > 1 else ()
+    return (LEADING[0], *host, *LEADING[1:], *accuracy, *_plugin_columns(model.rows), *TRAILING)
+
+
+def hosts(model: ModelSummary) -> tuple[str, ...]:
+    """The distinct hosts that measured (or skipped, or failed) the model's cells; "unknown" where unnamed."""
+    records = (*(r.record for r in model.rows), *model.skipped, *model.failed)
+    return tuple(sorted({r.host or "unknown" for r in records}))
+
+
+NO_REASON = "(no reason stored)"
+
+
+@dataclass(frozen=True)
+class ReasonGroup:
+    """Cells that share one reason (a skip's full text, or a failure's headline), in cell-key order."""
+
+    reason: str
+    records: tuple[CellRecord, ...]
+
+
+def by_reason(records: Iterable[CellRecord], reason_of: Callable[[CellRecord], str]) -> list[ReasonGroup]:
+    """One group per distinct `reason_of(record)` ("" counts as NO_REASON), largest first, then by reason."""
+    groups: dict[str, list[CellRecord]] = {}
+    for record in sorted(records, key=lambda r: (r.cell.key, r.host or "")):
+        groups.setdefault(reason_of(record).strip() or NO_REASON, []).append(record)
+    ordered = sorted(groups.items(), key=lambda item: (-len(item[1]), item[0]))
+    return [ReasonGroup(reason, tuple(found)) for reason, found in ordered]
+
+
+def skip_reason(record: CellRecord) -> str:
+    """A skipped cell's full reason, blank lines and surrounding spaces dropped."""
+    return "\n".join(line.strip() for line in (record.reason or "").splitlines() if line.strip())
+
+
+def cell_names(model: ModelSummary, records: Iterable[CellRecord]) -> list[str]:
+    """The cells' labels, each with "on HOST" when the model's cells come from more than one host."""
+    several = len(hosts(model)) > 1
+    return [r.cell.label + (f" on {r.host or 'unknown'}" if several else "") for r in records]
 
 
 def _plugin_columns(rows: Iterable[Row]) -> list[Column]:
@@ -331,9 +371,9 @@ HEADLINE_NOTE = ("Accuracy: for regression, the baseline's test MSE ÷ that of a
 
 
 def run_line(report: Report) -> str:
-    """The last run (from the run facts) and what the store holds."""
+    """The run shown (or the newest of the store) and what the report holds."""
     held = report.counts
-    stored = (f"Store: {sum(held.values())} cells, {held['ok']} ok, {held['skipped']} skipped, "
+    stored = (f"Shown: {sum(held.values())} cells, {held['ok']} ok, {held['skipped']} skipped, "
               f"{held['failed']} failed.")
     run = report.run
     if not run:
@@ -341,8 +381,12 @@ def run_line(report: Report) -> str:
     counts = run.get("counts") or {}
     ran = ", ".join(f"{counts.get(s, 0)} {s}" for s in ("ok", "skipped", "failed")) if counts else "counts not stored"
     wall = number(run.get("wall_s"))
-    return (f"Last run: matrix {run.get('matrix') or DASH}, {run.get('started_at') or DASH} → "
-            f"{run.get('finished_at') or DASH} ({sig(wall, 3)} s): {ran}. {stored}")
+    name = f"Run {run.get('id', DASH)}" + (f" ({run['label']})" if run.get("label") else "")
+    ended = run.get("finished_at") or "did not finish"
+    stopped = "" if run.get("completed", True) else " (interrupted)"
+    return (f"{name} of {run.get('runs', 1)} in the store: matrix {run.get('matrix') or DASH} on "
+            f"{run.get('host') or DASH}, {run.get('started_at') or DASH} → {ended}{stopped} "
+            f"({sig(wall, 3)} s): {ran}. {stored}")
 
 
 def best_text(model: ModelSummary) -> tuple[str, str, str]:

@@ -11,7 +11,7 @@ from bench_matrix.report.columns import MIB
 from bench_matrix.report.summary import Report, Row, disturbed_phases, headline, metric, number
 from bench_matrix.store import CellRecord
 
-CELL_COLUMNS = ("key", "model", "framework", "backend", "strategy", "precision", "target")
+CELL_COLUMNS = ("key", "model", "framework", "backend", "strategy", "precision", "target", "host", "run")
 LATENCY_STATS = ("mean", "p50", "p90", "p99", "std", "min")
 CSV_COLUMNS = (*CELL_COLUMNS, "status", "reason", "size_bytes", "size_mib", "size_gzip_bytes", "size_gzip_mib",
                "params", "mse", "mae", "max_abs_diff_vs_baseline", *(f"latency_{s}_ms" for s in LATENCY_STATS),
@@ -32,21 +32,22 @@ def records_json(records: list[CellRecord]) -> str:
 
 def write_csv(records: list[CellRecord], report: Report, path: Path) -> Path:
     """Write one row per record (missing values empty) to `path` and return it."""
-    rows = {row.record.cell.key: row for model in report.models for row in model.rows}
+    rows = {row.record.id: row for model in report.models for row in model.rows}
     tasks = {model.name: model.task for model in report.models}
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="", encoding="utf-8") as handle:
         writer = csv.DictWriter(handle, fieldnames=CSV_COLUMNS, lineterminator="\n")
         writer.writeheader()
         for record in records:
-            writer.writerow(csv_row(record, rows.get(record.cell.key), tasks.get(record.cell.model, "")))
+            writer.writerow(csv_row(record, rows.get(record.id), tasks.get(record.cell.model, "")))
     return path
 
 
 def csv_row(record: CellRecord, row: Row | None, task: str) -> dict[str, Any]:
     """The flat CSV fields of one record of a model of `task`; `row` carries the baseline comparisons of an ok
     cell."""
-    out: dict[str, Any] = {"key": record.cell.key, **record.cell.as_dict(), "status": record.status,
+    out: dict[str, Any] = {"key": record.cell.key, **record.cell.as_dict(), "host": record.host or "",
+                           "run": record.run_id or "", "status": record.status,
                            "reason": headline(record.reason), "task": task}
     for name in ("size_bytes", "size_gzip_bytes", "params", "mse", "mae", "max_abs_diff_vs_baseline",
                  "throughput_sps", "batch_size", "peak_rss_mb", "peak_gpu_mem_mb", "convert_s", "finetune_s",

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import hashlib
 import html
+import os
 import re
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from urllib.parse import quote
 
 from bench_matrix.report.columns import (
     DASH,
@@ -14,16 +18,19 @@ from bench_matrix.report.columns import (
     accuracy_line,
     baseline_note,
     best_text,
+    by_reason,
     caption,
+    cell_names,
     headline_text,
     model_columns,
     model_line,
     run_line,
     shown,
+    skip_reason,
 )
 from bench_matrix.report import closed_loop
+from bench_matrix.report.plots import Plot
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
-from bench_matrix.report.trajectories import write_plots
 from bench_matrix.store import CellRecord
 
 _COLUMN_NOTES = ("Latency is measured one sample at a time after warm-up runs; p50/p90/p99 are percentiles "
@@ -31,21 +38,27 @@ _COLUMN_NOTES = ("Latency is measured one sample at a time after warm-up runs; p
 
 
 def page_name(model: str) -> str:
-    """File name of a model's page; a model called "index" must not overwrite the index."""
-    return "index-model.md" if model.lower() == "index" else f"{model}.md"
+    """File name of a model's page; a model called "index" must not overwrite the index, and a name that is not
+    a plain file name ("a b/c") gets its safe characters and a short hash of the whole name."""
+    if model.lower() == "index":
+        return "index-model.md"
+    if re.fullmatch(r"[A-Za-z0-9_+-][A-Za-z0-9_.+-]*", model):
+        return f"{model}.md"
+    safe = re.sub(r"[^A-Za-z0-9_.+-]+", "_", model).strip("._")[:60]
+    return f"{safe}-{hashlib.sha256(model.encode()).hexdigest()[:8]}.md"
 
 
-def write_pages(report: Report, out_dir: Path) -> list[Path]:
-    """Write index.md and every model page into `out_dir`; return their paths, index first."""
+def write_pages(report: Report, out_dir: Path, plots: Mapping[str, Sequence[Plot]]) -> list[Path]:
+    """Write index.md and every model page (embedding its `plots`, by model name) into `out_dir`; return their
+    paths, index first."""
     out_dir.mkdir(parents=True, exist_ok=True)
     pages = {"index.md": index_page(report)}
-    pages.update({page_name(m.name): model_page(m) for m in report.models})
+    pages.update({page_name(m.name): model_page(m, plots.get(m.name, ()), out_dir) for m in report.models})
     paths = []
     for name, text in pages.items():
         path = out_dir / name
         path.write_text(text, encoding="utf-8", newline="\n")
         paths.append(path)
-    write_plots(report.models, out_dir)  # the closed-loop trajectories the model pages embed
     return paths
 
 
@@ -67,8 +80,9 @@ def _index_row(model: ModelSummary) -> list[str]:
             _escape(headline_text(model))]
 
 
-def model_page(model: ModelSummary) -> str:
-    """The model's results table with column notes, skipped and failed cells, and the environment."""
+def model_page(model: ModelSummary, plots: Sequence[Plot], out_dir: Path) -> str:
+    """The model's results table with column notes, its plots (paths relative to `out_dir`), closed-loop
+    laps, skipped cells grouped by reason, failed cells, and the environment."""
     lines = [f"# {_escape(model.name)}", "", "[← all models](index.md)", "",
              _escape_text(model_line(model, _code)), "", _escape(accuracy_line(model)), ""]
     note = baseline_note(model)
@@ -87,18 +101,36 @@ def model_page(model: ModelSummary) -> str:
                   "", f"{_COLUMN_NOTES} {DASH} means the metric was not recorded for that cell.", ""]
     else:
         lines += ["No cell of this model produced a result.", ""]
+    lines += _plots(plots, out_dir)
     lines += closed_loop.markdown_lines(model, _table, _escape)
-    if model.skipped:
-        lines += [f"## Skipped ({len(model.skipped)})", "",
-                  _table(["Method", "Cell", "Reason"], [False] * 3,
-                         [[_escape(r.cell.label), _code(r.cell.key), _reason_cell(r.reason)] for r in model.skipped]),
-                  ""]
+    lines += _skipped(model)
     if model.failed:
         lines += [f"## Failed ({len(model.failed)})", ""]
         for record in model.failed:
             lines += _failure(record)
     lines += ["## Environment", "", *_environment(model.environment)]
     return "\n".join(lines) + "\n"
+
+
+def _plots(plots: Sequence[Plot], out_dir: Path) -> list[str]:
+    """The "Plots" section: each plot's title as a heading over the image, linked relative to the page."""
+    lines = ["## Plots", ""] if plots else []
+    for plot in plots:
+        link = quote(Path(os.path.relpath(plot.path, out_dir)).as_posix())
+        lines += [f"### {_escape(plot.title)}", "", f"![{_escape(plot.alt)}]({link})", ""]
+    return lines
+
+
+def _skipped(model: ModelSummary) -> list[str]:
+    """The "Skipped" section: one row per distinct reason with the number of cells and their labels."""
+    if not model.skipped:
+        return []
+    groups = by_reason(model.skipped, skip_reason)
+    rows = [[_reason_cell(group.reason), str(len(group.records)),
+             _escape(", ".join(cell_names(model, group.records)))] for group in groups]
+    return [f"## Skipped ({len(model.skipped)})", "",
+            f"{len(model.skipped)} cell(s) could not run here, for {len(groups)} distinct reason(s):", "",
+            _table(["Reason", "Cells", "Methods"], [False, True, False], rows), ""]
 
 
 def _failure(record: CellRecord) -> list[str]:

@@ -18,11 +18,14 @@ from bench_matrix.report.columns import (
     accuracy_line,
     baseline_note,
     best_text,
+    by_reason,
     caption,
+    cell_names,
     model_columns,
     model_line,
     run_line,
     shown,
+    skip_reason,
 )
 from bench_matrix.report import closed_loop
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
@@ -71,10 +74,9 @@ def _print_model(model: ModelSummary, console: Console) -> None:
         console.print(*results_tables(model, console))
     closed_loop.print_terminal(model, console)
     if model.skipped:
-        console.print(_reasons_table(f"Skipped ({len(model.skipped)})", model.skipped, full=True, style="yellow"))
+        console.print(_skipped_table(model))
     if model.failed:
-        console.print(_reasons_table(f"Failed ({len(model.failed)}): the error (full reason in the Markdown page)",
-                                     model.failed, full=False, style="red"))
+        console.print(_failed_table(model.failed))
 
 
 def results_tables(model: ModelSummary, console: Console) -> list[Table]:
@@ -108,13 +110,27 @@ def _results_table(model: ModelSummary, groups: tuple[str, ...], last: bool) -> 
     return table
 
 
-def _reasons_table(title: str, records: tuple[CellRecord, ...], full: bool, style: str) -> Table:
-    table = Table(title=title, title_justify="left", title_style=style)
+def _skipped_table(model: ModelSummary) -> Table:
+    """One row per distinct skip reason: the reason once, then how many cells it applies to and which."""
+    groups = by_reason(model.skipped, skip_reason)
+    table = Table(title=f"Skipped ({len(model.skipped)} cells, {len(groups)} distinct reasons)",
+                  title_justify="left", title_style="yellow")
+    table.add_column("Reason", overflow="fold")
+    table.add_column("Cells", justify="right")
+    table.add_column("Methods", overflow="fold")
+    for group in groups:
+        names = ", ".join(cell_names(model, group.records))
+        table.add_row(Text(group.reason), str(len(group.records)), Text(names))
+    return table
+
+
+def _failed_table(records: tuple[CellRecord, ...]) -> Table:
+    title = f"Failed ({len(records)}): the error (full reason in the Markdown page)"
+    table = Table(title=title, title_justify="left", title_style="red")
     table.add_column("Method")
     table.add_column("Reason", overflow="fold")
     for record in records:
-        reason = (record.reason or "").strip() if full else headline(record.reason)
-        table.add_row(record.cell.label, Text(reason or "(no reason stored)"))
+        table.add_row(record.cell.label, Text(headline(record.reason) or "(no reason stored)"))
     return table
 
 

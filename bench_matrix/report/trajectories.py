@@ -8,8 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.report.closed_loop import MODE_NAMES, driven_records, plot_name
-from bench_matrix.report.summary import ModelSummary
+from bench_matrix.report.closed_loop import MODE_NAMES, plot_name
 from bench_matrix.store import CellRecord
 
 PANEL_INCHES = 4.0
@@ -18,15 +17,11 @@ COLOURS = {"lock_step": "#1f77b4", "real_time": "#d62728"}
 ROAD, REFERENCE = "#c8c8c8", "#555555"
 
 
-def write_plots(models: tuple[ModelSummary, ...], out_dir: Path) -> list[Path]:
-    """Write every driven cell's plot into `out_dir` (byte-identical for a given store); return the paths."""
-    paths = []
-    for model in models:
-        for record in driven_records(model):
-            path = out_dir / plot_name(record)
-            cell_figure(record).savefig(path, dpi=DPI, metadata={"Software": None})
-            paths.append(path)
-    return paths
+def write_cell_plot(record: CellRecord, folder: Path) -> Path:
+    """Write one driven cell's plot into `folder` under its `plot_name`; return its path."""
+    path = folder / plot_name(record)
+    cell_figure(record).savefig(path, dpi=DPI, metadata={"Software": None})
+    return path
 
 
 def cell_figure(record: CellRecord) -> Any:

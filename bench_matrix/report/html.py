@@ -1,0 +1,167 @@
+"""The report as one self-contained HTML file: the models overview, each model's sortable results table, plots
+(inline), closed-loop laps, skipped and failed cells grouped by reason, notes and the environment."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+from bench_matrix.report import closed_loop
+from bench_matrix.report.columns import (
+    DIFFERENT_ENVIRONMENTS,
+    HEADLINE_NOTE,
+    NO_REASON,
+    accuracy_line,
+    baseline_note,
+    best_text,
+    by_reason,
+    caption,
+    cell_names,
+    headline_text,
+    model_columns,
+    model_line,
+    run_line,
+    shown,
+    skip_reason,
+)
+from bench_matrix.report.html_parts import SCRIPT, STYLE, Html, esc, figure, table
+from bench_matrix.report.plots import Plot
+from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
+
+TITLE = "bench-matrix report"
+
+
+def write_html(report: Report, plots: Mapping[str, Sequence[Plot]], path: Path) -> Path:
+    """Write the whole report (with `plots`, by model name, inlined) to `path` as one file; return `path`."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(page(report, plots), encoding="utf-8", newline="\n")
+    return path
+
+
+def page(report: Report, plots: Mapping[str, Sequence[Plot]]) -> str:
+    """The HTML document: byte-identical for a given report and plot files."""
+    sections = [_model_section(k, m, plots.get(m.name, ())) for k, m in enumerate(report.models)]
+    body = [f"<h1>{TITLE}</h1>", f'<p class="meta">{esc(run_line(report))}</p>', "<h2>Models</h2>",
+            _overview(report), f"<p>Speed-up = baseline p50 ÷ fastest cell p50, both at batch 1. "
+            f"{esc(HEADLINE_NOTE)}</p>", *sections,
+            "<h2>Environment (all cells)</h2>", _environment(report.environment)]
+    return ("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
+            "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n"
+            f"<title>{TITLE}</title>\n<style>{STYLE}</style>\n</head>\n<body>\n"
+            + "\n".join(body) + f"\n<script>{SCRIPT}</script>\n</body>\n</html>\n")
+
+
+def _anchor(index: int) -> str:
+    return f"model-{index + 1}"
+
+
+def _overview(report: Report) -> str:
+    headers = [("Model", "model name: links to its section"), ("Framework", "the model's framework"),
+               ("ok", "cells with a result"), ("skipped", "cells that could not run here"),
+               ("failed", "cells that raised an error"), ("Fastest cell", "the ok cell with the lowest p50"),
+               ("p50 ms", "median latency of the fastest cell at batch 1"),
+               ("Speed-up", "baseline p50 ÷ fastest cell p50"), ("Accuracy", HEADLINE_NOTE)]
+    rows = []
+    for k, model in enumerate(report.models):
+        method, latency, speedup = best_text(model)
+        rows.append([Html(f'<a href="#{_anchor(k)}">{esc(model.name)}</a>'), model.framework,
+                     str(len(model.rows)), str(len(model.skipped)), str(len(model.failed)), method, latency,
+                     speedup, headline_text(model)])
+    numeric = [False, False, True, True, True, False, True, True, False]
+    return table(headers, numeric, rows)
+
+
+def _model_section(index: int, model: ModelSummary, plots: Sequence[Plot]) -> str:
+    parts = [f'<section id="{_anchor(index)}">', f"<h2>{esc(model.name)}</h2>",
+             f'<p class="meta">{esc(model_line(model, str))}</p>', f"<p>{esc(accuracy_line(model))}</p>",
+             *_notes(model), "<h3>Results</h3>", _results(model)]
+    if plots:
+        parts += ["<h3>Plots</h3>", *(figure(plot) for plot in plots)]
+    parts += [*_closed_loop(model), *_skipped(model), *_failed(model),
+              f"<details><summary>Environment of {esc(model.name)}</summary>{_environment(model.environment)}"
+              "</details>", "</section>"]
+    return "\n".join(parts)
+
+
+def _notes(model: ModelSummary) -> list[str]:
+    """The baseline note, suspect cells, and cells whose timing was disturbed or unsteady."""
+    note = baseline_note(model)
+    found = [f'<p class="note"><strong>Note:</strong> {esc(note)}</p>'] if note else []
+    found += [f'<p class="note bad"><strong>Suspect:</strong> {esc(line)}</p>' for line in model.suspects]
+    found += [f'<p class="note"><strong>Disturbed (~):</strong> {esc(line)}</p>' for line in model.disturbed]
+    found += [f'<p class="note"><strong>Unsteady (~):</strong> {esc(line)}</p>' for line in model.unsteady]
+    return found
+
+
+def _results(model: ModelSummary) -> str:
+    """The results table (the Markdown page's columns) with its caption and the column notes."""
+    if not model.rows:
+        return "<p>No cell of this model produced a result.</p>"
+    columns = shown(model_columns(model), model.rows)
+    headers = [(c.header.replace("\n", " "), c.note) for c in columns]
+    rows = [[c.render(row) for c in columns] for row in model.rows]
+    classes = ["baseline" if row.is_baseline else "" for row in model.rows]
+    notes = "".join(f"<dt>{esc(label)}</dt><dd>{esc(note)}</dd>" for label, note in headers)
+    return (f"<p>{esc(caption(model))} Click a column header to sort by it; click again to reverse.</p>"
+            + table(headers, [c.numeric for c in columns], rows, classes)
+            + f'<details><summary>Columns</summary><dl class="columns">{notes}</dl></details>')
+
+
+def _closed_loop(model: ModelSummary) -> list[str]:
+    """The simulation table (every column) and the cells that were selected but could not drive."""
+    found, skipped = closed_loop.laps(model), closed_loop.not_driven(model)
+    if not found and not skipped:
+        return []
+    parts = ["<h3>Closed loop</h3>", f"<p>{esc(closed_loop.INTRO)}</p>"]
+    if found:
+        columns = closed_loop.COLUMNS
+        parts.append(table([(c.header, c.note) for c in columns], [c.numeric for c in columns],
+                           [[c.render(lap) for c in columns] for lap in found]))
+    parts += [f"<p>not driven: {esc(record.cell.label)}: {esc(reason)}</p>" for record, reason in skipped]
+    return parts
+
+
+def _skipped(model: ModelSummary) -> list[str]:
+    """One box per distinct skip reason: the reason once, then the cells it applies to."""
+    if not model.skipped:
+        return []
+    groups = by_reason(model.skipped, skip_reason)
+    parts = [f"<h3>Skipped ({len(model.skipped)})</h3>",
+             f"<p>{len(model.skipped)} cell(s) could not run here, for {len(groups)} distinct reason(s).</p>"]
+    for group in groups:
+        cells = "".join(f"<li>{esc(name)}</li>" for name in cell_names(model, group.records))
+        parts.append(f'<div class="group skipped"><pre class="reason">{esc(group.reason)}</pre>'
+                     f'<p>{len(group.records)} cell(s):</p><ul class="cells">{cells}</ul></div>')
+    return parts
+
+
+def _failed(model: ModelSummary) -> list[str]:
+    """One box per distinct error headline; each cell's full reason (traceback included) folded under it."""
+    if not model.failed:
+        return []
+    groups = by_reason(model.failed, lambda record: headline(record.reason))
+    parts = [f"<h3>Failed ({len(model.failed)})</h3>"]
+    for group in groups:
+        names = cell_names(model, group.records)
+        cells = "".join(f"<li><details><summary>{esc(name)}</summary><pre>{esc(record.reason or NO_REASON)}"
+                        "</pre></details></li>" for name, record in zip(names, group.records))
+        parts.append(f'<div class="group failed"><p class="reason"><strong>{esc(group.reason)}</strong></p>'
+                     f'<p>{len(group.records)} cell(s):</p><ul>{cells}</ul></div>')
+    return parts
+
+
+def _environment(env: Environment) -> str:
+    """The environment as a label/value table, with a warning when the cells' environments differ."""
+    rows = [(label, " / ".join(values)) for label, values in env.fields]
+    if env.libraries:
+        libraries = (f"{name} {' / '.join(versions)}" for name, versions in env.libraries)
+        rows.append(("Libraries", ", ".join(libraries)))
+    rows += [(label, " / ".join(values)) for label, values in env.runtime]
+    if not rows:
+        return "<p>no environment stored with these cells</p>"
+    cells = "".join(f'<tr><th scope="row">{esc(label)}</th><td>{esc(value)}</td></tr>'
+                    for label, value in rows)
+    warnings = "".join(f"<li>{esc(w)}</li>" for w in env.warnings)
+    warned = (f'<div class="note"><strong>Warning:</strong> {esc(DIFFERENT_ENVIRONMENTS)}'
+              f"<ul>{warnings}</ul></div>")
+    return f'<table class="environment">{cells}</table>' + (warned if env.warnings else "")

@@ -1,0 +1,100 @@
+"""Run history end to end: runs are kept, `compare` gates on a planted regression, stores of two hosts merge,
+and a store of the previous release is reported and extended."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from conftest import FAST_SETTINGS, cli, install_slow_plugin, matrix_text
+
+FORMAT_1 = Path(__file__).parent / "data" / "store-format-1.sqlite"
+pytestmark = pytest.mark.slow
+
+
+def _ok(out) -> str:
+    assert out.returncode == 0, out.stdout + out.stderr
+    return out.stdout
+
+
+def _records(project: Path, *args: str) -> list[dict]:
+    return json.loads(_ok(cli(project, "report", "--format", "json", *args)))
+
+
+def test_compare_flags_a_planted_regression_and_keeps_every_run(tiny_project, tmp_path):
+    env = install_slow_plugin(tmp_path)
+    (tiny_project / "m.yaml").write_text(matrix_text(["onnxruntime", "slow_ort"], ["none"], ["fp32"], ["cpu"]))
+    _ok(cli(tiny_project, "run", "m.yaml", "--label", "before", env={**env, "SLOW_ORT_DELAY_MS": "0"}))
+    _ok(cli(tiny_project, "run", "m.yaml", "--force", "--label", "after", env={**env, "SLOW_ORT_DELAY_MS": "3"}))
+
+    runs = _ok(cli(tiny_project, "runs", env=env))
+    assert "before" in runs and "after" in runs
+    before = {r["cell"]["backend"]: r for r in _records(tiny_project, "--run", "before")}
+    latest = {r["cell"]["backend"]: r for r in _records(tiny_project)}
+    assert before["slow_ort"]["metrics"]["latency_ms"]["p50"] < 2 < latest["slow_ort"]["metrics"]["latency_ms"]["p50"]
+    assert before["slow_ort"]["run"] == 1 and latest["slow_ort"]["run"] == 2  # nothing was overwritten
+
+    gate = cli(tiny_project, "compare", "before", "after", "--format", "json", env=env)
+    assert gate.returncode == 1, gate.stdout + gate.stderr
+    result = json.loads(gate.stdout)
+    slowed = next(c for c in result["cells"] if c["key"] == "tiny/slow_ort/none/fp32/cpu")
+    assert slowed["verdict"] == "worse"
+    assert slowed["metrics"]["p50"]["verdict"] == "worse" and slowed["metrics"]["p50"]["p_value"] < 0.05
+    table = cli(tiny_project, "compare", "before", "after", "--threshold", "p50=100000%", "--threshold",
+                "p99=100000%", "--threshold", "throughput=100000%", env=env)
+    assert table.returncode == 0, table.stdout + table.stderr  # a threshold nothing exceeds: no gate
+    assert "Mann-Whitney U" in table.stdout
+
+
+# long enough windows for a median to mean something (the fast settings time 5 calls)
+STEADY = ("settings: {min_iterations: 300, min_time_s: 0.3, warmup_iterations: 20, warmup_s: 0.1, "
+          "throughput_time_s: 0.3, batch_size: 8, timeout_s: 120}\n")
+
+
+def test_two_runs_of_unchanged_cells_compare_unchanged(tiny_project):
+    text = matrix_text(["pytorch", "onnxruntime"], ["none"], ["fp32"], ["cpu"]).replace(FAST_SETTINGS, STEADY)
+    (tiny_project / "m.yaml").write_text(text)
+    _ok(cli(tiny_project, "run", "m.yaml"))
+    _ok(cli(tiny_project, "run", "m.yaml", "--force"))
+    out = cli(tiny_project, "compare", "previous", "latest", "--format", "md")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "0 worse" in out.stdout
+
+
+def test_stores_of_two_hosts_merge_and_report_filters_by_host(tiny_project, tmp_path):
+    (tiny_project / "m.yaml").write_text(matrix_text(["onnxruntime"], ["none"], ["fp32"], ["cpu", "cuda"]))
+    for host in ("alpha", "beta"):
+        _ok(cli(tiny_project, "run", "m.yaml", "--results", f"{host}.sqlite", env={"BENCH_MATRIX_HOST": host}))
+    merged = tmp_path / "merged.sqlite"
+    out = _ok(cli(tiny_project, "merge", "alpha.sqlite", "beta.sqlite", "--into", str(merged)))
+    assert "alpha.sqlite: 1 run(s), 2 record(s) added" in out
+    again = _ok(cli(tiny_project, "merge", "alpha.sqlite", "--into", str(merged)))
+    assert "0 run(s), 0 record(s) added; 1 run(s) were already there" in again
+
+    every = _records(tiny_project, "--results", str(merged))
+    assert sorted((r["host"], r["cell"]["target"], r["status"]) for r in every) == [
+        ("alpha", "cpu", "ok"), ("alpha", "cuda", "skipped"), ("beta", "cpu", "ok"), ("beta", "cuda", "skipped")]
+    only = _records(tiny_project, "--results", str(merged), "--host", "beta")
+    assert {r["host"] for r in only} == {"beta"} and len(only) == 2
+    bad = cli(tiny_project, "report", "--results", str(merged), "--host", "gamma")
+    assert bad.returncode == 2 and "no stored record matches --host gamma; the store holds hosts: alpha, beta" \
+        in bad.stderr
+    refused = cli(tiny_project, "compare", str(merged), "alpha.sqlite")
+    assert refused.returncode == 2 and "holds records of 2 hosts (alpha, beta)" in refused.stderr
+
+
+def test_a_store_of_the_previous_release_is_reported_and_extended(tiny_project):
+    store = tiny_project / "old.sqlite"
+    shutil.copy(FORMAT_1, store)
+    before = store.read_bytes()
+    old = _records(tiny_project, "--results", str(store))
+    assert store.read_bytes() == before  # reading migrates in memory only
+    assert sorted(r["status"] for r in old) == ["ok", "ok", "skipped", "skipped"]
+    (tiny_project / "m.yaml").write_text(matrix_text(["pytorch"], ["none"], ["fp32"], ["cpu"]))
+    _ok(cli(tiny_project, "run", "m.yaml", "--results", str(store), "--force", "--label", "new"))
+    runs = _ok(cli(tiny_project, "runs", "--results", str(store)))
+    assert "migrated from results format 1" in runs and "new" in runs
+    assert len(_records(tiny_project, "--results", str(store), "--run", "1")) == 4  # the old records kept
