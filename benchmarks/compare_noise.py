@@ -4,7 +4,9 @@ compared at the default thresholds. Nothing changed between the runs, so every "
 alarm; the table gives, per metric, how often one occurred and how large the run-to-run changes were (the
 quantiles the default thresholds in docs/results.md are chosen from).
 
-    .venv/bin/python benchmarks/compare_noise.py [--repeats 6] [--workdir DIR]
+    .venv/bin/python benchmarks/compare_noise.py [--repeats 6] [--workdir DIR] [--compare-only]
+
+--compare-only compares the runs already in WORKDIR again (after a change to `compare`).
 """
 
 from __future__ import annotations
@@ -48,17 +50,19 @@ def comparisons(workdir: Path, repeats: int) -> list[dict]:
 
 def summary(results: list[dict]) -> list[str]:
     """Per metric: pairs compared, false alarms, and quantiles of |relative change| between unchanged runs."""
-    lines = ["| metric | default threshold | cell pairs | worse | better | |change| p50 | p90 | max |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| metric | default threshold | cell pairs | worse | better | not comparable (interference) | "
+             "|change| p50 | p90 | max |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for name in METRICS:
-        changes = [c["metrics"][name] for result in results for c in result["cells"]
-                   if name in c.get("metrics", {}) and c["metrics"][name]["verdict"] != "not comparable"]
+        every = [c["metrics"][name] for result in results for c in result["cells"] if name in c.get("metrics", {})]
+        changes = [c for c in every if c["verdict"] != "not comparable"]
+        noisy = sum("interference" in (c.get("why") or "") for c in every)
         sizes = np.abs([c["change"] for c in changes if c.get("change") is not None]) * 100
         verdicts = [c["verdict"] for c in changes]
         quantiles = [f"{q:.1f} %" for q in np.percentile(sizes, [50, 90, 100])] if len(sizes) else ["—"] * 3
         limit = DEFAULT_THRESHOLDS.get(name)
-        lines.append(f"| {name} | {f'{limit:.0%}' if limit is not None else 'by metric'} | {len(changes)} | "
-                     f"{verdicts.count('worse')} | {verdicts.count('better')} | {' | '.join(quantiles)} |")
+        lines.append(f"| {name} | {f'{limit:.0%}' if limit is not None else 'by metric'} | {len(every)} | "
+                     f"{verdicts.count('worse')} | {verdicts.count('better')} | {noisy} | "
+                     f"{' | '.join(quantiles)} |")
     return lines
 
 
@@ -66,10 +70,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=6)
     parser.add_argument("--workdir", type=Path, help="keep the workspace and store here (default: temp)")
+    parser.add_argument("--compare-only", action="store_true", help="compare WORKDIR's runs, measure nothing")
     args = parser.parse_args()
     workdir = args.workdir or Path(tempfile.mkdtemp(prefix="compare-noise-"))
     workdir.mkdir(parents=True, exist_ok=True)
-    measure(workdir, args.repeats)
+    if not args.compare_only:
+        measure(workdir, args.repeats)
     results = comparisons(workdir, args.repeats)
     (workdir / "comparisons.json").write_text(json.dumps(results, indent=1))
     gated = sum(bool(r.get("regressions")) for r in results)

@@ -205,11 +205,20 @@ def test_cells_on_one_side_only_are_listed_and_never_gate() -> None:
     assert result.counts() == {"better": 0, "worse": 0, "unchanged": 1, "not comparable": 2}
 
 
-def test_a_disturbed_side_is_compared_and_marked() -> None:
-    result = _pair(_samples(1.0, seed=1), _samples(1.3, seed=2), new_metrics={"interference": DISTURBED})
+def test_a_phase_measured_under_interference_cannot_gate_but_size_still_does() -> None:
+    result = _pair(_samples(1.0, seed=1), _samples(1.5, seed=2), new_metrics={"interference": DISTURBED})
     cell = result.cells[0]
-    assert cell.verdict == "worse" and cell.disturbed == ("new: latency: cpu busy (1 attempts, none clean)",)
-    assert "worse ~" in comparison_markdown(result)
+    assert cell.disturbed == ("new: latency: cpu busy (1 attempts, none clean)",)
+    for name in ("p50", "p99"):
+        assert _metric(result, name).verdict == "not comparable"
+        assert _metric(result, name).why == ("latency measured under interference in new (re-run it on a quiet "
+                                             "machine)")
+    assert _metric(result, "throughput").verdict == "unchanged"  # its phase was clean
+    assert cell.verdict == "not comparable" and result.regressions == []
+    assert "not comparable ~" in comparison_markdown(result)
+    bigger = _pair(_samples(1.0, seed=1), _samples(1.5, seed=2), new_metrics={"interference": DISTURBED,
+                                                                              "size_bytes": 5_000_000})
+    assert bigger.regressions == [(ORT.key, "size")]
 
 
 @pytest.mark.parametrize(("text", "expected"), [("p50=10%", ("p50", 0.1)), ("size=1%", ("size", 0.01)),

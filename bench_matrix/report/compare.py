@@ -6,8 +6,9 @@ airspeed velocity's rule. p50: Mann-Whitney U, two-sided, on the raw latencies; 
 how many of each side's latencies lie above the pooled 99th percentile; throughput: Mann-Whitney U on the
 batch durations (threshold alone for records from before they were stored). The samples are autocorrelated
 timing series, not independent draws, so with thousands of them almost any shift is "significant": the
-threshold does the real work; the test stops a few noisy samples from passing for a change. Size and accuracy
-(deterministic) are judged by their threshold alone.
+threshold does the real work; the test stops a few noisy samples from passing for a change. A timed phase
+flagged for interference on either side (every attempt disturbed) is not comparable: it cannot gate. Size and
+accuracy (deterministic) are judged by their threshold alone.
 
 Changes are relative ((new - base) / base) for p50, p99, throughput, size and error metrics where lower is
 better (mse); absolute (new - base) for fractions where higher is better (top1, cosine_similarity). A
@@ -219,6 +220,13 @@ def _disturbed(pair: _Pair) -> tuple[str, ...]:
     return tuple(notes)
 
 
+def _phase_disturbed(pair: _Pair, phase: str) -> str | None:
+    """Why a timed phase cannot be compared: flagged for interference on a side (every attempt disturbed)."""
+    sides = [role for role, _, record in pair.roles() if record is not None and phase in disturbed_phases(record)]
+    return f"{phase} measured under interference in {' and '.join(sides)} (re-run it on a quiet machine)" \
+        if sides else None
+
+
 def _values(pair: _Pair, *path: str) -> tuple[float | None, float | None, str | None]:
     """A metric of both records, and why it cannot be compared when a side lacks it (or it is not finite)."""
     base, new = (_finite(metric(record, *path)) for record in pair.both())
@@ -240,6 +248,9 @@ def _latency(pair: _Pair, which: str, limits: Mapping[str, float], alpha: float)
     lacking = [role for role, values in samples.items() if values is None or len(values) == 0]
     if lacking:
         return judge.not_comparable(f"no raw latency samples in {' and '.join(lacking)}")
+    disturbed = _phase_disturbed(pair, "latency")
+    if disturbed:
+        return judge.not_comparable(disturbed)
     before, after = (np.asarray(samples[role], np.float64) for role in ("base", "new"))
     p_value = _tail_p_value(before, after) if which == "p99" else _shift_p_value(before, after)
     return judge.judged(significant=p_value < alpha, p_value=p_value)
@@ -268,6 +279,7 @@ def _throughput(pair: _Pair, limits: Mapping[str, float], alpha: float) -> Metri
     judged by the threshold alone for records from before they were kept."""
     base, new, why = _values(pair, "throughput_sps")
     judge = _MetricJudge("throughput", "throughput_sps", base, new, True, limits["throughput"], "higher")
+    why = why or _phase_disturbed(pair, "throughput")
     if why:
         return judge.not_comparable(why)
     batches = [side.batches.get(record.cell.key) for _, side, record in pair.roles() if record]
