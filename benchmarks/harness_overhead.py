@@ -37,7 +37,8 @@ def harness_p50(workdir: Path) -> tuple[float, Path]:
     subprocess.run([sys.executable, "-m", "bench_matrix.cli", "--workspace", str(workdir / "ws"), "run",
                     str(workdir / "matrix.yaml"), "--force"], check=True, capture_output=True, cwd=workdir)
     with sqlite3.connect(workdir / "ws" / "results.sqlite") as db:
-        metrics, artifact = db.execute("SELECT metrics, artifact_path FROM results WHERE status = 'ok'").fetchone()
+        metrics, artifact = db.execute("SELECT metrics, artifact_path FROM records WHERE status = 'ok' "
+                                       "ORDER BY id DESC").fetchone()  # this run's: every run is kept
     return json.loads(metrics)["latency_ms"]["p50"], Path(artifact)
 
 

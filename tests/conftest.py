@@ -87,6 +87,24 @@ def matrix_text(backends: list[str], strategies: list[str], precisions: list[str
             + FAST_SETTINGS + extra)
 
 
+@pytest.fixture
+def onnx_project(tmp_path: Path) -> Path:
+    """tiny.onnx (tests/fuzz_cases.py) and data.npz: for tests of how runs behave, not of what they convert;
+    no process of its runs imports torch or TensorFlow (about 5 s a run instead of 15)."""
+    import fuzz_cases
+
+    return fuzz_cases.write_project(tmp_path)
+
+
+def onnx_matrix_text(models: list[str], precisions: list[str], extra: str = "") -> str:
+    """tiny.onnx under each name in `models` through ONNX Runtime on the CPU at `precisions` (fp32, fp16)."""
+    entries = "".join(f"  - {{name: {name}, framework: onnx, file: tiny.onnx}}\n" for name in models)
+    return ("models:\n" + entries
+            + "dataset: {npz: data.npz, split: {train: 0.5, calibration: 0.25, test: 0.25}}\n"
+            f"axes: {{backend: [onnxruntime], strategy: [none], precision: {precisions}, target: [cpu]}}\n"
+            + FAST_SETTINGS + extra)
+
+
 def install_slow_plugin(root: Path) -> dict[str, str]:
     """tests/plugin_slow.py installed as pip would (a .dist-info with its entry point); the CLI's env."""
     dist = root / "site" / "slow_ort-0.1.dist-info"

@@ -14,7 +14,7 @@ import pytest
 
 from bench_matrix.cell import Cell
 from bench_matrix.store import ResultStore
-from conftest import TESTS, cli, matrix_text, popen_cli
+from conftest import TESTS, cli, matrix_text, onnx_matrix_text, popen_cli
 
 pytestmark = pytest.mark.slow
 
@@ -106,7 +106,7 @@ def _wait_for_ok_record(db: Path, proc, timeout: float = 180) -> None:
         if db.is_file():
             try:
                 with sqlite3.connect(db) as con:
-                    if con.execute("SELECT count(*) FROM results WHERE status = 'ok'").fetchone()[0]:
+                    if con.execute("SELECT count(*) FROM records WHERE status = 'ok'").fetchone()[0]:
                         return
             except sqlite3.OperationalError:  # the run has created the file but not yet its tables
                 pass
@@ -126,39 +126,37 @@ def _workers_of(workspace: Path) -> list[int]:
     return found
 
 
-def test_killed_run_keeps_finished_cells_and_resumes(tiny_project):
-    (tiny_project / "m.yaml").write_text(matrix_text(["torchscript", "onnxruntime"], ["none", "ptq_dynamic"],
-                                                     ["fp32", "int8"], ["cpu"]))
-    db = tiny_project / "ws" / "results.sqlite"
-    proc = popen_cli(tiny_project, "run", "m.yaml")
+def test_killed_run_keeps_finished_cells_and_resumes(onnx_project):
+    (onnx_project / "m.yaml").write_text(onnx_matrix_text(["tiny", "twin"], ["fp32", "fp16"]))
+    db = onnx_project / "ws" / "results.sqlite"
+    proc = popen_cli(onnx_project, "run", "m.yaml")
     _wait_for_ok_record(db, proc)
     proc.kill()  # SIGKILL: no chance to clean up
     proc.wait()
     time.sleep(1.0)
-    assert _workers_of(tiny_project / "ws") == []  # children die with their parent
+    assert _workers_of(onnx_project / "ws") == []  # children die with their parent
     with sqlite3.connect(db) as con:
-        kept = dict(con.execute("SELECT key, finished_at FROM results WHERE status = 'ok'").fetchall())
+        kept = dict(con.execute("SELECT key, finished_at FROM records WHERE status = 'ok'").fetchall())
     assert 1 <= len(kept) < 4
 
-    rerun = cli(tiny_project, "run", "m.yaml")
+    rerun = cli(onnx_project, "run", "m.yaml")
     assert rerun.returncode == 0, rerun.stdout + rerun.stderr
     assert f"{4 - len(kept)} ok" in rerun.stdout and f"{len(kept)} already stored" in rerun.stdout
     with sqlite3.connect(db) as con:
-        after = dict(con.execute("SELECT key, finished_at FROM results WHERE status = 'ok'").fetchall())
+        after = dict(con.execute("SELECT key, finished_at FROM records WHERE status = 'ok'").fetchall())
     assert len(after) == 4 and all(after[k] == v for k, v in kept.items())  # finished cells were not re-run
 
 
-def test_ctrl_c_stops_cleanly_with_exit_130(tiny_project):
-    (tiny_project / "m.yaml").write_text(matrix_text(["torchscript", "onnxruntime"], ["none", "ptq_dynamic"],
-                                                     ["fp32", "int8"], ["cpu"]))
-    proc = popen_cli(tiny_project, "run", "m.yaml")
-    _wait_for_ok_record(tiny_project / "ws" / "results.sqlite", proc)
+def test_ctrl_c_stops_cleanly_with_exit_130(onnx_project):
+    (onnx_project / "m.yaml").write_text(onnx_matrix_text(["tiny", "twin"], ["fp32", "fp16"]))
+    proc = popen_cli(onnx_project, "run", "m.yaml")
+    _wait_for_ok_record(onnx_project / "ws" / "results.sqlite", proc)
     proc.send_signal(signal.SIGINT)
     output, _ = proc.communicate(timeout=60)
     assert proc.returncode == 130
     assert "interrupted" in output and "run the same command again to resume" in output
     assert "Traceback" not in output
-    assert _workers_of(tiny_project / "ws") == []
+    assert _workers_of(onnx_project / "ws") == []
 
 
 def test_plan_judges_strategy_options_and_filters_are_checked(tiny_project):
@@ -198,20 +196,21 @@ def test_user_errors_exit_2_without_traceback(tiny_project):
     assert missing.returncode == 2 and "nope.yaml: file not found" in missing.stderr
 
 
-def test_passes_measure_each_cell_again_and_keep_the_least_disturbed(tiny_project):
-    (tiny_project / "m.yaml").write_text(matrix_text(["onnxruntime"], ["none"], ["fp32"], ["cpu"]).replace(
+def test_passes_measure_each_cell_again_and_keep_the_least_disturbed(onnx_project):
+    (onnx_project / "m.yaml").write_text(onnx_matrix_text(["tiny"], ["fp32"]).replace(
         "timeout_s: 120}", "timeout_s: 120, passes: 3}"))
-    run = cli(tiny_project, "run", "m.yaml")
+    run = cli(onnx_project, "run", "m.yaml")
     assert run.returncode == 0, run.stdout + run.stderr
     assert "p50 per pass:" in run.stdout
-    m = records(tiny_project)["onnxruntime/none/fp32/cpu"]["metrics"]
+    m = records(onnx_project)["onnxruntime/none/fp32/cpu"]["metrics"]
     assert len(m["latency_passes_p50"]) == 3 and m["latency_ms"]["p50"] in m["latency_passes_p50"]
     if m["interference"]["flagged"]:  # only when every pass was flagged is a flagged one kept: the fastest
         assert m["latency_ms"]["p50"] == min(m["latency_passes_p50"])
-    store = ResultStore(tiny_project / "ws" / "results.sqlite", readonly=True)
-    kept = store.samples(Cell("tiny", "pytorch", "onnxruntime", "none", "fp32", "cpu"))
+    store = ResultStore(onnx_project / "ws" / "results.sqlite", readonly=True)
+    (record,) = [r for r in store.records() if r.cell == Cell("tiny", "onnx", "onnxruntime", "none", "fp32", "cpu")]
+    kept = store.samples(record)
     store.close()
     assert len(kept) == m["latency_ms"]["n"]  # the raw samples are the kept pass's
     assert float(np.median(kept)) == pytest.approx(m["latency_ms"]["p50"], rel=1e-5)
-    again = cli(tiny_project, "run", "m.yaml")
+    again = cli(onnx_project, "run", "m.yaml")
     assert "1 already stored" in again.stdout  # all passes done: nothing to re-measure

@@ -17,7 +17,7 @@ import pytest
 from bench_matrix.measure import interference, timing
 from bench_matrix.measure.interference import Interference, Limits, Sampler, cpu_jiffies
 from bench_matrix.measure.timing import LoopSettings, steady_time_calls
-from conftest import cli, matrix_text
+from conftest import cli, onnx_matrix_text
 
 CPU = max(os.sched_getaffinity(0))
 
@@ -142,25 +142,25 @@ def test_a_competitor_that_stays_gets_the_phase_flagged(monkeypatch):
 
 
 @pytest.mark.slow
-def test_a_run_under_a_cpu_bound_competitor_flags_its_cell_and_the_report_marks_it(tiny_project):
-    judged = matrix_text(["onnxruntime"], ["none"], ["fp32"], ["cpu"]).replace(  # long enough to judge
+def test_a_run_under_a_cpu_bound_competitor_flags_its_cell_and_the_report_marks_it(onnx_project):
+    judged = onnx_matrix_text(["tiny"], ["fp32"]).replace(  # long enough to judge
         "min_time_s: 0.02", "min_time_s: 0.5").replace("throughput_time_s: 0.02", "throughput_time_s: 0.5")
-    (tiny_project / "m.yaml").write_text(judged)
-    env = {"BENCH_MATRIX_LOCK_DIR": str(tiny_project / "lock")}
+    (onnx_project / "m.yaml").write_text(judged)
+    env = {"BENCH_MATRIX_LOCK_DIR": str(onnx_project / "lock")}
     competitors = [start_competitor(cpu) for cpu in sorted(os.sched_getaffinity(0))]  # whichever CPU it pins
     try:
-        run = cli(tiny_project, "run", "m.yaml", env=env)
+        run = cli(onnx_project, "run", "m.yaml", env=env)
     finally:
         for proc in competitors:
             stop(proc)
     assert run.returncode == 0, run.stdout + run.stderr
-    (record,) = json.loads(cli(tiny_project, "report", "--format", "json").stdout)
+    (record,) = json.loads(cli(onnx_project, "report", "--format", "json").stdout)
     seen = record["metrics"]["interference"]
     latency = seen["phases"]["latency"]
     assert len(latency["attempts"]) == timing.ATTEMPTS  # re-measured, disturbed every time
     assert seen["flagged"] is True and "other processes took" in seen["reason"]
     assert all(a["other_share"] > Limits().other_share for a in latency["attempts"])
     assert record["metrics"]["latency_attempts"] == timing.ATTEMPTS
-    cli(tiny_project, "report", "--format", "md", "--out", str(tiny_project / "pages"))
-    page = (tiny_project / "pages" / "tiny.md").read_text()
+    cli(onnx_project, "report", "--format", "md", "--out", str(onnx_project / "pages"))
+    page = (onnx_project / "pages" / "tiny.md").read_text()
     assert "> **Disturbed (~):** onnxruntime none fp32: latency: other processes took" in page
