@@ -126,8 +126,13 @@ def _workers_of(workspace: Path) -> list[int]:
     return found
 
 
+# four ONNX cells, each timed for a second: the run is still going when the first record lands (with the fast
+# settings the last three cells ended before a signal sent then arrived)
+INTERRUPTIBLE = onnx_matrix_text(["tiny", "twin"], ["fp32", "fp16"]).replace("min_time_s: 0.02", "min_time_s: 1.0")
+
+
 def test_killed_run_keeps_finished_cells_and_resumes(onnx_project):
-    (onnx_project / "m.yaml").write_text(onnx_matrix_text(["tiny", "twin"], ["fp32", "fp16"]))
+    (onnx_project / "m.yaml").write_text(INTERRUPTIBLE)
     db = onnx_project / "ws" / "results.sqlite"
     proc = popen_cli(onnx_project, "run", "m.yaml")
     _wait_for_ok_record(db, proc)
@@ -148,7 +153,7 @@ def test_killed_run_keeps_finished_cells_and_resumes(onnx_project):
 
 
 def test_ctrl_c_stops_cleanly_with_exit_130(onnx_project):
-    (onnx_project / "m.yaml").write_text(onnx_matrix_text(["tiny", "twin"], ["fp32", "fp16"]))
+    (onnx_project / "m.yaml").write_text(INTERRUPTIBLE)
     proc = popen_cli(onnx_project, "run", "m.yaml")
     _wait_for_ok_record(onnx_project / "ws" / "results.sqlite", proc)
     proc.send_signal(signal.SIGINT)
