@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -122,6 +123,9 @@ def cli(project: Path, *args: str, env: dict[str, str] | None = None, timeout: f
 
 
 def popen_cli(project: Path, *args: str, env: dict[str, str] | None = None) -> subprocess.Popen:
+    """`bench-matrix` started in the background; Ctrl-C (SIGINT) reaches it as a user's would, even when pytest
+    itself was started in the background of a shell (which leaves SIGINT ignored, and children inherit that)."""
     return subprocess.Popen([sys.executable, "-m", "bench_matrix.cli", "--workspace", str(project / "ws"), *args],
                             cwd=project, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env={**os.environ, **(env or {})})
+                            env={**os.environ, **(env or {})},
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
