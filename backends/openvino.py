@@ -1,0 +1,195 @@
+"""OpenVINO on the CPU and on the Intel GPU and NPU it finds: PyTorch, Keras and ONNX models through
+their fp32 ONNX export; fp32 forced as fp32, bf16 and fp16 where the device computes them, int8 by NNCF
+post-training quantisation."""
+
+from __future__ import annotations
+
+import importlib.util
+import tempfile
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, NamedTuple
+
+import numpy as np
+
+from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
+from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.measure.env import installed_versions
+from bench_matrix.tensors import Inputs
+
+from ._common import static_options_reason
+from ._nncf import METHODS, quantise
+from ._onnx_export import OPSET, fp32_model, graph_feeds
+from ._openvino import DEVICES, OPTION_DEFAULTS, compile_config, device_name, device_reason, in_force, \
+    missing_reason, openvino
+
+if TYPE_CHECKING:
+    import openvino as ov
+
+FILE = "model.xml"  # OpenVINO IR: the graph, with its weights in model.bin beside it
+FRAMEWORKS = ("pytorch", "tensorflow", "onnx")
+TARGETS = tuple(DEVICES)
+WEIGHTS = {"fp16": "float16", "int8": "int8"}  # how the IR stores the weights of each precision
+EXPORTS = {"pytorch": f"torch.onnx (opset {OPSET})", "tensorflow": f"tf2onnx (opset {OPSET})",
+           "onnx": "as given"}
+
+
+class OpenVinoBackend(Backend):
+    """Converts every source through its fp32 ONNX model into OpenVINO IR (quantised by NNCF for int8) and
+    runs it compiled for the target's device and each batch's shapes, with synchronous infer requests."""
+
+    name = "openvino"
+    description = ("OpenVINO on the CPU, Intel GPU and Intel NPU: fp32 (forced), bf16 and fp16 where the "
+                   "device computes them, int8 by NNCF post-training quantisation")
+    supports = (Support(FRAMEWORKS, ("none",), ("fp32", "fp16", "bf16"), TARGETS),
+                Support(FRAMEWORKS, ("ptq_static",), ("int8",), TARGETS))
+    options = {
+        "hint": {"enum": ["latency", "throughput"], "default": "latency",
+                 "description": "OpenVINO's PERFORMANCE_HINT at compile_model"},
+        "streams": {"type": "integer", "minimum": 1, "maximum": 64, "default": 1,
+                    "description": "NUM_STREAMS: inference streams (parallel requests) of a compiled model"},
+        "pinning": {"type": "boolean", "default": True,
+                    "description": "ENABLE_CPU_PINNING: pin the inference threads to cores (cpu only)"},
+    }
+
+    def versions(self) -> dict[str, str]:
+        return installed_versions("openvino", "nncf", "onnx", "torch", "tf2onnx", "tensorflow")
+
+    def probe(self, target: str, precision: str) -> str | None:
+        return missing_reason(precision) or device_reason(target, precision)
+
+    def probe_source(self, framework: str, source_format: str) -> str | None:
+        if framework != "tensorflow" or importlib.util.find_spec("tf2onnx") is not None:
+            return None
+        return "converting Keras models to ONNX needs tf2onnx, which is not installed (pip install tf2onnx)"
+
+    def option_reason(self, step: StrategySpec, source_format: str) -> str | None:
+        return static_options_reason(step, "OpenVINO", METHODS) if step.kind == "ptq_static" else None
+
+    def convert(self, request: ConvertRequest) -> dict[str, Any]:
+        step = request.step
+        if reason := self.option_reason(step, request.source.format):
+            raise ValueError(reason)
+        ov = openvino()
+        quantisation = None
+        with tempfile.TemporaryDirectory(prefix="bench-matrix-ov-") as tmp:
+            model, feeds, batch = _fp32_model(request, Path(tmp))
+            if step.kind == "ptq_static":
+                model, quantisation = quantise(model, request, feeds, batch)
+            # Saved, never kept: a converted model may share its weights' memory with what it was made from.
+            # fp32 weights stay fp32 (save_model halves them to fp16 by default); fp16 cells get fp16 weights.
+            ov.save_model(model, str(request.out_dir / FILE), compress_to_fp16=request.precision == "fp16")
+        return {"file": FILE, "inputs": feeds, "batch": batch, "export": EXPORTS[request.source.framework],
+                "strategy": step.kind, "weights": WEIGHTS.get(request.precision, "float32"),
+                "quantization": quantisation, "options": {**OPTION_DEFAULTS, **request.options}}
+
+    def load(self, artifact_dir: Path, meta: dict[str, Any], target: str, precision: str,
+             threads: int) -> Session:
+        core = openvino().Core()
+        device = DEVICES[target]
+        compiler = Compiler(core, core.read_model(str(artifact_dir / meta["file"])), device,
+                            compile_config(core, device, precision, meta["options"], threads))
+        if single := compiler.batch_of_one():  # the latency batch, compiled (and checked) now
+            compiler.for_shapes(single)
+        return OpenVinoSession(compiler, meta["inputs"])
+
+
+def _fp32_model(request: ConvertRequest, tmp: Path) -> tuple["ov.Model", dict[str, str], int | None]:
+    """The source's fp32 ONNX model (exported once per source into the shared directory), read by OpenVINO's
+    ONNX frontend from a file; with the graph input each source input feeds and the graph's fixed batch."""
+    import onnx
+
+    exported = fp32_model(request, tmp)
+    feeds, batch = graph_feeds(exported, request.source)
+    path = tmp / "fp32.onnx"
+    onnx.save(exported, str(path))
+    return openvino().convert_model(str(path)), feeds, batch
+
+
+class Compiler:
+    """The model compiled for each set of input shapes it is fed (static shapes ran 3 % faster than a dynamic
+    batch axis on PilotNet); refuses a compiled model computing in another precision than asked."""
+
+    def __init__(self, core: "ov.Core", model: "ov.Model", device: str, config: dict[str, Any]):
+        self.core, self.model, self.device, self.config = core, model, device, config
+        self.compiled: dict[tuple[tuple[int, tuple[int, ...]], ...], "ov.CompiledModel"] = {}
+        self.ports = {name: port for port in model.inputs for name in port.get_names()}
+        self.facts: dict[str, Any] = {"device": device, "device_name": device_name(core, device)}
+
+    def batch_of_one(self) -> dict[str, tuple[int, ...]] | None:
+        """Every input's shape at batch 1 (by graph input name), or None when another axis is free."""
+        shapes = {}
+        for port in self.model.inputs:
+            dims = list(port.get_partial_shape())
+            if any(d.is_dynamic for d in dims[1:]):
+                return None
+            shapes[port.get_any_name()] = (1 if dims[0].is_dynamic else dims[0].get_length(),
+                                           *(d.get_length() for d in dims[1:]))
+        return shapes
+
+    def for_shapes(self, shapes: dict[str, tuple[int, ...]]) -> "ov.CompiledModel":
+        key = tuple(sorted((self.ports[name].get_index(), shape) for name, shape in shapes.items()))
+        if key not in self.compiled:
+            compiled = self.core.compile_model(self._reshaped(shapes), self.device, self.config)
+            found = in_force(compiled)
+            wanted = self.config.get("INFERENCE_PRECISION_HINT")
+            if wanted and found.get("inference_precision") != wanted:  # never a silent bf16 or f32 instead
+                raise ValueError(f"asked OpenVINO's {self.device} for inference precision {wanted} but the "
+                                 f"compiled model computes in {found.get('inference_precision')}")
+            self.facts.update(found)
+            self.compiled[key] = compiled
+        return self.compiled[key]
+
+    def _reshaped(self, shapes: dict[str, tuple[int, ...]]) -> "ov.Model":
+        """The model with static `shapes` (graph input name -> shape): only its dynamic axes may change."""
+        for name, shape in shapes.items():
+            dims = list(self.ports[name].get_partial_shape())
+            fixed = [d.get_length() if d.is_static else s for d, s in zip(dims, shape)]
+            if len(dims) != len(shape) or tuple(fixed) != tuple(shape):
+                raise ValueError(f"the OpenVINO model's input {name} takes "
+                                 f"{self.ports[name].get_partial_shape()}, not {shape}")
+        if all(self.ports[name].get_partial_shape().is_static for name in shapes):
+            return self.model
+        model = self.model.clone()
+        model.reshape({name: list(shape) for name, shape in shapes.items()})
+        return model
+
+
+class Prepared(NamedTuple):
+    """An infer request of the compiled model with a batch bound to it (the arrays are kept: the request
+    reads them in place)."""
+
+    request: "ov.InferRequest"
+    arrays: dict[str, np.ndarray]
+
+
+class OpenVinoSession(Session):
+    """prepare binds a batch to an infer request of its own (of the model compiled for the batch's shapes),
+    execute is one synchronous infer, fetch copies every output."""
+
+    def __init__(self, compiler: Compiler, feeds: dict[str, str]):
+        self._compiler = compiler
+        self._feeds = feeds  # source input name -> graph input name
+        self._dtypes = {name: port.get_element_type().to_dtype() for port in compiler.model.inputs
+                        for name in port.get_names()}
+        self._outputs = len(compiler.model.outputs)
+
+    def prepare(self, inputs: Inputs) -> Prepared:
+        ov = openvino()
+        arrays = {graph: np.ascontiguousarray(inputs[name], dtype=self._dtypes[graph])
+                  for name, graph in self._feeds.items()}
+        compiled = self._compiler.for_shapes({graph: tuple(a.shape) for graph, a in arrays.items()})
+        request = compiled.create_infer_request()
+        for graph, array in arrays.items():
+            request.set_tensor(graph, ov.Tensor(array, shared_memory=True))
+        return Prepared(request, arrays)
+
+    def execute(self, prepared: Prepared) -> Prepared:
+        prepared.request.infer(share_outputs=True)  # synchronous: returns once the outputs are written
+        return prepared
+
+    def fetch(self, outputs: Prepared) -> list[np.ndarray]:
+        return [np.array(outputs.request.get_output_tensor(i).data, dtype=np.float32)
+                for i in range(self._outputs)]
+
+    def info(self) -> dict[str, Any]:
+        return {**self._compiler.facts, "compiled_shapes": len(self._compiler.compiled)}

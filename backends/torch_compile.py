@@ -1,0 +1,155 @@
+"""PyTorch's compilers: torch.compile (TorchDynamo + Inductor, compiled when the cell loads) and AOTInductor
+(a package compiled ahead of time: the artifact)."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import Any
+
+from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
+from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.sources import SourceModel
+from bench_matrix.tensors import specs_from_list, specs_to_list
+
+from ._inductor import cell_batches, compile_now, fixed_shapes_reason, inductor_versions, \
+    no_precompiled_headers, private_cache, run_batches, source_reason, toolchain_reasons
+from ._torch import TorchSession, exact_fp32, pin_threads, place, quiet_torch, torch_dtype
+from .torch_tensorrt import export
+
+SUPPORTS = (Support(("pytorch",), ("none",), ("fp32",), ("cpu",)),
+            Support(("pytorch",), ("none",), ("fp32", "fp16", "bf16"), ("cuda",)))
+MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
+AOT_MODES = ("default", "max-autotune-no-cudagraphs")  # an AOTInductor package has no CUDA graphs
+PACKAGE = "model.pt2"
+
+
+class InductorBackend(Backend):
+    """What both compilers share: their libraries, the toolchain probe and the sources they take."""
+
+    supports = SUPPORTS
+    python_headers = False  # whether the generated CPU code includes Python's C headers
+
+    def versions(self) -> dict[str, str]:
+        return inductor_versions()
+
+    def probe(self, target: str, precision: str) -> str | None:
+        return "; ".join(toolchain_reasons(target, precision, self.python_headers)) or None
+
+    def option_reason(self, step: StrategySpec, source_format: str) -> str | None:
+        return source_reason(self.name, source_format)
+
+    def check(self, source: SourceModel) -> None:
+        """Raise the reason this source cannot be compiled, if there is one."""
+        if reason := source_reason(self.name, source.format) or fixed_shapes_reason(self.name, source):
+            raise ValueError(reason)
+
+    def options_of(self, request: ConvertRequest) -> dict[str, Any]:
+        """The matrix's options for this backend over the declared defaults."""
+        return {**{key: schema["default"] for key, schema in self.options.items()}, **request.options}
+
+
+class TorchCompileBackend(InductorBackend):
+    """The source model, compiled by torch.compile at load for the cell's batch sizes, before any timing."""
+
+    name = "torch_compile"
+    description = "torch.compile (TorchDynamo + Inductor), compiled at load for the cell's batch sizes"
+    python_headers = True
+    options = {
+        "mode": {"enum": list(MODES), "default": "default",
+                 "description": "torch.compile mode; reduce-overhead and max-autotune add CUDA graphs "
+                                "on cuda"},
+        "dynamic": {"type": "boolean", "default": False,
+                    "description": "false: a graph per batch size; true: the batch axis symbolic (one graph "
+                                   "for batches of 2 and more, batch 1 its own)"},
+        "fullgraph": {"type": "boolean", "default": False,
+                      "description": "true: fail on a graph break instead of running that part eagerly"},
+    }
+
+    def convert(self, request: ConvertRequest) -> dict[str, Any]:
+        """The artifact is a copy of the source file, as for the pytorch backend; compiling waits for load."""
+        source = request.source
+        self.check(source)
+        shutil.copy2(source.path, request.out_dir / source.path.name)
+        return {"source": {**source.to_dict(), "path": source.path.name}, "max_batch": request.max_batch,
+                "options": self.options_of(request)}
+
+    def load(self, artifact_dir: Path, meta: dict[str, Any], target: str, precision: str,
+             threads: int) -> Session:
+        """Compile for batch 1 and max_batch with the threads pinned; compile_s is that part of the load."""
+        import torch
+
+        pin_threads(threads)
+        private_cache()
+        source = SourceModel.from_dict({**meta["source"], "path": str(artifact_dir / meta["source"]["path"])})
+        options = meta["options"]
+        torch._dynamo.reset()  # a second load in one process must compile again, not reuse the first graphs
+        with quiet_torch(captured=True):
+            module = place(source.load(), target, precision)
+            compiled = torch.compile(module, mode=options["mode"], fullgraph=options["fullgraph"],
+                                     dynamic=None if options["dynamic"] else False)
+            facts = compile_now(TorchSession(compiled, target, precision), source,
+                                cell_batches(meta["max_batch"]), options["dynamic"])
+        facts.update(options, cuda_graphs=target != "cpu" and options["mode"] in CUDA_GRAPH_MODES)
+        return TorchSession(compiled, target, precision, facts)
+
+
+class AotInductorBackend(InductorBackend):
+    """The model exported with a dynamic batch axis and compiled ahead of time into an AOTInductor package."""
+
+    name = "aot_inductor"
+    description = "AOTInductor: torch.export + Inductor compiled ahead of time into a .pt2 package"
+    options = {
+        "mode": {"enum": list(AOT_MODES), "default": "default",
+                 "description": "the torch.compile mode whose Inductor settings compile the package"},
+    }
+
+    def convert(self, request: ConvertRequest) -> dict[str, Any]:
+        """Export for batches 1..max_batch and compile into model.pt2, Inductor's caches inside out_dir."""
+        import torch
+        from torch._inductor.utils import fresh_cache
+
+        self.check(request.source)
+        torch.set_num_threads(request.threads)
+        options = self.options_of(request)
+        configs = inductor_configs(options["mode"], request.target)
+        device = "cpu" if request.target == "cpu" else "cuda"
+        if device == "cuda":
+            exact_fp32()  # Inductor picks its matmul kernels with TF32 allowed or not, when it compiles
+        with quiet_torch(captured=True), fresh_cache(dir=str(request.out_dir)):
+            module = place(request.source.load(), request.target, request.precision)
+            with torch.no_grad():
+                program, _ = export(module, request.source.inputs, request.max_batch, device,
+                                    torch_dtype(request.precision), request.seed)
+            torch._inductor.aoti_compile_and_package(program, package_path=str(request.out_dir / PACKAGE),
+                                                     inductor_configs=dict(configs))
+        return {"file": PACKAGE, "inputs": specs_to_list(request.source.inputs),
+                "max_batch": request.max_batch, "mode": options["mode"], "inductor_configs": configs}
+
+    def load(self, artifact_dir: Path, meta: dict[str, Any], target: str, precision: str,
+             threads: int) -> Session:
+        """Load the package and call it at each batch size (the first calls set its runtime up, untimed)."""
+        import torch
+
+        pin_threads(threads)
+        private_cache()
+        with quiet_torch(captured=True):
+            model = torch._inductor.aoti_load_package(str(artifact_dir / meta["file"]))
+        facts = {"mode": meta["mode"], "inductor_configs": meta["inductor_configs"],
+                 "batch_range": [1, meta["max_batch"]]}
+        session = TorchSession(model, target, precision, facts)
+        run_batches(session, specs_from_list(meta["inputs"]), cell_batches(meta["max_batch"]))
+        return session
+
+
+def inductor_configs(mode: str, target: str) -> dict[str, Any]:
+    """The Inductor settings of a package: the mode's, precompiled headers off (they would be written outside
+    out_dir) and, on the CPU, the thread count read at run time, not fixed at compile time (an artifact serves
+    every `threads` setting)."""
+    import torch
+
+    configs: dict[str, Any] = {**torch._inductor.list_mode_options(mode), **no_precompiled_headers()}
+    if target == "cpu":
+        configs["cpp.dynamic_threads"] = True
+    return dict(sorted(configs.items()))

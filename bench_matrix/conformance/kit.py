@@ -1,0 +1,164 @@
+"""The kit's state: backends, models, artifacts and sessions, each made once and shared by every test of a
+case; a failure or skip is kept too, so each later test of the case reports it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+import pytest
+
+from bench_matrix.backends.base import Backend, ConvertRequest, Session
+from bench_matrix.backends.registry import BackendLoadError, load_backend
+from bench_matrix.conformance.cases import Case, RuleBroken
+from bench_matrix.conformance.checks import reported_threads
+from bench_matrix.conformance.fresh import infos
+from bench_matrix.conformance.models import BUILDERS, LARGE, THREADS, KitModel, build
+from bench_matrix.conformance.watch import watched
+from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.tensors import take
+
+T = TypeVar("T")
+
+
+@dataclass
+class Artifact:
+    """A converted artifact: its final directory (renamed there after convert, as the runner does), the
+    metadata as stored (through JSON), and what the conversion wrote outside its output directory."""
+
+    directory: Path
+    meta: dict[str, Any]
+    writes: list[str] = field(default_factory=list)
+
+
+@dataclass
+class Loaded:
+    """A session of a case's first artifact, with its info() taken right after loading."""
+
+    session: Session
+    info: Any
+
+
+class Kit:
+    """Makes each thing once per test class, under `root`; `options` are backend options by backend name."""
+
+    def __init__(self, root: Path, options: dict[str, dict[str, Any]] | None = None):
+        self.root = root
+        self.options = options or {}
+        self._outcomes: dict[Any, tuple[bool, Any]] = {}
+        self._fresh: dict[str, dict[str, Any]] = {}
+
+    def _once(self, key: Any, make: Callable[[], T]) -> T:
+        """make()'s value, or the exception it raised (a skip included), for `key` at every call."""
+        if key not in self._outcomes:
+            try:
+                self._outcomes[key] = (True, make())
+            except (Exception, pytest.skip.Exception) as exc:
+                self._outcomes[key] = (False, (exc, exc.__traceback__))
+        made, value = self._outcomes[key]
+        if not made:
+            exc, traceback = value
+            raise exc.with_traceback(traceback)  # not the traceback of every earlier raise as well
+        return value
+
+    def backend(self, name: str) -> Backend:
+        def make() -> Backend:
+            try:
+                return load_backend(name)
+            except BackendLoadError as exc:
+                raise RuleBroken("backend-loads", str(exc)) from exc
+
+        return self._once(("backend", name), make)
+
+    def model(self, framework: str, name: str) -> KitModel:
+        def make() -> KitModel:
+            if framework not in BUILDERS:
+                pytest.skip(f"the conformance kit has no {framework} models (it has {', '.join(BUILDERS)})")
+            try:
+                return build(framework, name, self.root / "models" / framework)
+            except ImportError as exc:
+                pytest.skip(f"the kit's {framework} models cannot be built here: {exc}")
+
+        return self._once(("model", framework, name), make)
+
+    def runnable(self, case: Case) -> tuple[Backend, KitModel]:
+        """The backend and model of a case this machine can run; skipped with the backend's reason if not."""
+        backend, model = self.backend(case.backend), self.model(case.framework, case.model)
+        step = StrategySpec(case.strategy, case.strategy)
+        if invalid := (backend.invalid_reason(case.framework, case.strategy, case.precision, case.target)
+                       or backend.option_reason(step, model.source.format)):
+            pytest.skip(f"not valid for the kit's {model.source.format} model: {invalid}")
+        reasons = [backend.probe(case.target, case.precision),
+                   backend.probe_source(case.framework, model.source.format)]
+        if skip := "; ".join(r for r in reasons if r):
+            pytest.skip(skip)
+        return backend, model
+
+    def artifact(self, case: Case, which: str = "first") -> Artifact:
+        """The case's artifact `which`: "first", or "second" (converted again, to compare)."""
+        return self._once(("artifact", case, which), lambda: self._convert(case, which))
+
+    def _convert(self, case: Case, which: str) -> Artifact:
+        backend, model = self.runnable(case)
+        place = self.root / "artifacts" / case.id
+        out = place / f"{which}.tmp" / "model"
+        out.mkdir(parents=True)
+        shared = self.root / "shared" / case.backend / f"{case.framework}-{case.model}"
+        shared.mkdir(parents=True, exist_ok=True)
+        request = ConvertRequest(source=model.source, step=StrategySpec(case.strategy, case.strategy),
+                                 precision=case.precision, target=case.target, out_dir=out,
+                                 calibration=lambda n: take(model.calibration, slice(0, n)), threads=THREADS,
+                                 seed=0, shared_dir=shared, max_batch=LARGE,
+                                 options=dict(self.options.get(case.backend, {})))
+        with watched(place / f"{which}.watch", model.source.path.parent) as writes:
+            try:
+                meta = backend.convert(request)
+            except Exception as exc:
+                raise RuleBroken("convert-succeeds", f"convert() raised {type(exc).__name__}: {exc}") from exc
+        try:
+            stored = json.loads(json.dumps(meta))
+        except (TypeError, ValueError) as exc:
+            raise RuleBroken("meta-is-json", f"convert() returned metadata JSON cannot hold: {exc}") from exc
+        if not any(out.iterdir()):
+            raise RuleBroken("convert-writes-artifact", f"convert() wrote nothing into out_dir {out}")
+        final = place / which
+        out.parent.rename(final)
+        return Artifact(final / "model", stored, writes)
+
+    def load(self, case: Case, which: str = "first") -> Session:
+        """A new session of the case's artifact `which`, loaded with THREADS threads."""
+        artifact = self.artifact(case, which)
+        try:
+            return self.backend(case.backend).load(artifact.directory, artifact.meta, case.target,
+                                                   case.precision, THREADS)
+        except Exception as exc:
+            raise RuleBroken("load-succeeds", f"load() raised {type(exc).__name__}: {exc}") from exc
+
+    def loaded(self, case: Case) -> Loaded:
+        """The case's first artifact, loaded once for the tests that only run it."""
+        def make() -> Loaded:
+            session = self.load(case)
+            return Loaded(session, session.info())
+
+        return self._once(("loaded", case), make)
+
+    def fresh_info(self, case: Case) -> dict[str, Any]:
+        """info() of the case's first artifact loaded in a fresh process ({"error": ...} if that failed); one
+        process serves every case loaded so far whose info() in this process shows other threads."""
+        self.loaded(case)
+        if case.id not in self._fresh:
+            cases = [key[1] for key, (made, value) in self._outcomes.items()
+                     if key[0] == "loaded" and made and key[1].id not in self._fresh
+                     and reported_threads(value.info, THREADS) is not None]
+            jobs = [{"case": c.id, "backend": c.backend, "artifact": str(self.artifact(c).directory),
+                     "meta": self.artifact(c).meta, "target": c.target, "precision": c.precision,
+                     "threads": THREADS} for c in cases]
+            scratch = self.root / "fresh"
+            shutil.rmtree(scratch, ignore_errors=True)
+            scratch.mkdir()
+            self._fresh.update(infos(jobs, THREADS, scratch))
+        return self._fresh[case.id]

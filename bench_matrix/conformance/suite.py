@@ -1,0 +1,167 @@
+"""The conformance tests: subclass BackendConformance in a test module, naming the backends it checks."""
+
+from __future__ import annotations
+
+import json
+from typing import Any, ClassVar
+
+from bench_matrix.backends.base import Session, Support
+from bench_matrix.conformance.cases import REPEAT, SOURCE_FORMATS, TOLERANCES, Case, RuleBroken, Tolerance, \
+    combinations, option_variants, reason_problem
+from bench_matrix.conformance.checks import bounds, check_close, check_fetched, pending_work, reported_threads
+from bench_matrix.conformance.kit import Kit
+from bench_matrix.conformance.models import MODELS, THREADS
+from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.tensors import Inputs, take
+
+AXES = ("frameworks", "strategies", "precisions", "targets")
+# Tests that convert a second time, which they do on the first of the class's models only: a conversion costs
+# most of a case's time, and where it writes does not depend on the model.
+ONCE_PER_COMBINATION = ("test_convert_is_repeatable", "test_convert_writes_only_into_out_dir")
+
+
+def _predict(session: Session, inputs: Inputs) -> Any:
+    try:
+        return session.predict(inputs)
+    except Exception as exc:
+        raise RuleBroken("session-runs", f"prepare/execute/fetch raised {type(exc).__name__}: {exc}") from exc
+
+
+def _answer(rule: str, call: str, method: Any, *args: Any) -> None:
+    """Call a reason-giving method (`call` shows how, in the message); RuleBroken unless it answers a
+    non-empty str or None."""
+    try:
+        answer = method(*args)
+    except Exception as exc:
+        raise RuleBroken(rule, f"{call} raised {type(exc).__name__}: {exc}") from exc
+    if problem := reason_problem(answer, call):
+        raise RuleBroken(rule, problem)
+
+
+def _names(values: Any) -> bool:
+    return isinstance(values, tuple) and bool(values) and all(isinstance(v, str) and v for v in values)
+
+
+class BackendConformance:
+    """The contract every backend keeps, checked on the kit's models for every combination it declares. A
+    test module subclasses it (as Test...) with `backends` set; `--bench-matrix-backend NAME` narrows it."""
+
+    backends: ClassVar[tuple[str, ...]] = ()
+    # the kit's models each combination runs on; the first also converts a second time
+    models: ClassVar[tuple[str, ...]] = MODELS
+    # each backend's `backend_options`, as a matrix would give them
+    backend_options: ClassVar[dict[str, dict[str, Any]]] = {}
+    # per precision, over TOLERANCES: a backend's own precisions need one
+    tolerances: ClassVar[dict[str, Tolerance]] = {}
+
+    def _tolerance(self, precision: str) -> Tolerance:
+        found = {**TOLERANCES, **self.tolerances}.get(precision)
+        if found is None:
+            raise RuleBroken("outputs-within-tolerance",
+                             f"no tolerance is stated for precision {precision!r}: give one in `tolerances`")
+        return found
+
+    def test_backend_loads_and_declares(self, backend_name: str, conformance_kit: Kit) -> None:
+        backend = conformance_kit.backend(backend_name)
+        if not (isinstance(backend.description, str) and backend.description.strip()):
+            raise RuleBroken("declares-supports", f"description is {backend.description!r}, not text")
+        supports = backend.supports
+        if not (isinstance(supports, tuple) and supports and all(isinstance(s, Support) for s in supports)):
+            raise RuleBroken("declares-supports", f"supports is {supports!r}, not a tuple of Support")
+        for s, axis in ((s, axis) for s in supports for axis in AXES):
+            if not _names(getattr(s, axis)):
+                raise RuleBroken("declares-supports", f"{s!r}: {axis} is not a non-empty tuple of names")
+
+    def test_versions_name_libraries(self, backend_name: str, conformance_kit: Kit) -> None:
+        versions = conformance_kit.backend(backend_name).versions()
+        if not (isinstance(versions, dict) and _names(tuple(versions)) and _names(tuple(versions.values()))):
+            raise RuleBroken("versions-names-libraries", f"versions() returned {versions!r}, not a non-empty "
+                                                         f"dict of library name -> version")
+
+    def test_probes_answer_reason_or_none(self, backend_name: str, conformance_kit: Kit) -> None:
+        backend, rule = conformance_kit.backend(backend_name), "probe-answers-reason-or-none"
+        for framework, _, precision, target in combinations(backend):
+            _answer(rule, f"probe({target!r}, {precision!r})", backend.probe, target, precision)
+            for fmt in SOURCE_FORMATS.get(framework, (framework,)):
+                _answer(rule, f"probe_source({framework!r}, {fmt!r})", backend.probe_source, framework, fmt)
+
+    def test_option_reason_answers_reason_or_none(self, backend_name: str, conformance_kit: Kit) -> None:
+        backend, rule = conformance_kit.backend(backend_name), "option-reason-answers-reason-or-none"
+        for framework, kind in sorted({(f, st) for f, st, _, _ in combinations(backend)}):
+            for fmt in SOURCE_FORMATS.get(framework, (framework,)):
+                for options in option_variants(kind):
+                    _answer(rule, f"option_reason({kind!r} {options}, {fmt!r})", backend.option_reason,
+                            StrategySpec(kind, kind, options), fmt)
+
+    def test_invalid_reason_agrees_with_supports(self, backend_name: str, conformance_kit: Kit) -> None:
+        backend, rule = conformance_kit.backend(backend_name), "invalid-reason-agrees-with-supports"
+        for combo in combinations(backend):
+            if (reason := backend.invalid_reason(*combo)) is not None:
+                raise RuleBroken(rule, f"invalid_reason{combo} refuses a declared combination: {reason}")
+        undeclared = ("no-such-framework", "none", "fp32", "cpu")
+        reason = backend.invalid_reason(*undeclared)
+        if not (isinstance(reason, str) and reason.strip()):
+            raise RuleBroken(rule, f"invalid_reason{undeclared} returned {reason!r}, not why it is not "
+                                   f"declared")
+
+    def test_converts(self, case: Case, conformance_kit: Kit) -> None:
+        conformance_kit.artifact(case)
+
+    def test_outputs_match_the_reference(self, case: Case, conformance_kit: Kit) -> None:
+        model = conformance_kit.model(case.framework, case.model)
+        tolerance = self._tolerance(case.precision)
+        outputs = check_fetched(_predict(conformance_kit.loaded(case).session, model.eval), model.reference)
+        check_close(outputs, model.reference, bounds(tolerance, model.reference), "outputs-within-tolerance",
+                    f"the {case.framework} model's own fp32 outputs (allowed at {case.precision}: "
+                    f"{tolerance.factor:g} x {tolerance.basis})")
+
+    def test_runs_a_batch_of_one(self, case: Case, conformance_kit: Kit) -> None:
+        model = conformance_kit.model(case.framework, case.model)
+        first = [out[:1] for out in model.reference]
+        session = conformance_kit.loaded(case).session
+        outputs = check_fetched(_predict(session, take(model.eval, slice(0, 1))), first)
+        check_close(outputs, first, bounds(self._tolerance(case.precision), model.reference),
+                    "runs-any-batch", "the fp32 reference of the same sample")
+
+    def test_execute_returns_when_done(self, case: Case, conformance_kit: Kit) -> None:
+        model = conformance_kit.model(case.framework, case.model)
+        if reason := pending_work(conformance_kit.loaded(case).session, model.large):
+            raise RuleBroken("execute-waits-for-its-work", reason)
+
+    def test_info_is_json(self, case: Case, conformance_kit: Kit) -> None:
+        info = conformance_kit.loaded(case).info
+        try:
+            json.dumps(info)
+        except (TypeError, ValueError) as exc:
+            raise RuleBroken("info-is-json", f"info() returned {info!r}; JSON cannot hold it: {exc}") \
+                from exc
+
+    def test_threads_as_asked(self, case: Case, conformance_kit: Kit) -> None:
+        """Seen in this process, or else in a fresh one (a runtime may set its threads once per process)."""
+        if reported_threads(conformance_kit.loaded(case).info, THREADS) is None:
+            return
+        fresh = conformance_kit.fresh_info(case)
+        if "error" in fresh:
+            raise RuleBroken("threads-as-asked", f"loading in a fresh process failed: {fresh['error']}")
+        if problem := reported_threads(fresh["info"], THREADS):
+            raise RuleBroken("threads-as-asked", f"{problem} (in a fresh process)")
+
+    def test_load_is_repeatable(self, case: Case, conformance_kit: Kit) -> None:
+        self._same_as_first(case, conformance_kit, conformance_kit.load(case), "load-is-repeatable",
+                            "the first load's outputs")
+
+    def test_convert_is_repeatable(self, case: Case, conformance_kit: Kit) -> None:
+        second = conformance_kit.load(case, "second")
+        self._same_as_first(case, conformance_kit, second, "convert-is-repeatable",
+                            "the outputs of the first conversion")
+
+    def test_convert_writes_only_into_out_dir(self, case: Case, conformance_kit: Kit) -> None:
+        if writes := conformance_kit.artifact(case, "second").writes:
+            shown = ", ".join(writes[:5]) + (f" and {len(writes) - 5} more" if len(writes) > 5 else "")
+            raise RuleBroken("convert-writes-only-out_dir", f"convert() wrote {shown} outside out_dir")
+
+    def _same_as_first(self, case: Case, kit: Kit, session: Session, rule: str, what: str) -> None:
+        model = kit.model(case.framework, case.model)
+        first = _predict(kit.loaded(case).session, model.eval)
+        again = check_fetched(_predict(session, model.eval), model.reference)
+        check_close(again, first, bounds(REPEAT, model.reference), rule, what)

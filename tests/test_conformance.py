@@ -1,0 +1,130 @@
+"""The conformance kit (bench_matrix.conformance): every installed built-in backend passes it, and backends
+that break the contract fail it, each test naming the rule broken."""
+
+from __future__ import annotations
+
+import os
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+from bench_matrix.backends.registry import available
+from bench_matrix.conformance import BackendConformance
+
+TESTS = Path(__file__).resolve().parent
+sys.path.insert(0, str(TESTS))
+
+import plugin_conformance_zoo  # noqa: E402
+
+pytest_plugins = ["bench_matrix.conformance.plugin"]  # a conftest.py would name the package
+
+BUILT_IN = tuple(sorted(name for name, entry in available().items()
+                        if entry.distribution.startswith("bench-matrix ")))
+COMPILERS = ("aot_inductor", "torch_compile")  # an Inductor compile takes 10-20 s per model on 2 cores
+
+
+class TestBuiltInBackends(BackendConformance):
+    """The kit on every backend bench-matrix registers itself (GPU cases skip with their probe's reason)."""
+
+    backends = tuple(name for name in BUILT_IN if name not in COMPILERS)
+
+
+class TestCompilers(BackendConformance):
+    """PyTorch's compilers on the kit's model with two inputs and two outputs only, to keep CI short."""
+
+    backends = tuple(name for name in BUILT_IN if name in COMPILERS)
+    models = ("multi_io",)
+
+
+# What each zoo backend must fail with: the rules named by its failed tests (and nothing else).
+BROKEN = {"good_ort": set(), "no_device": set(), "litters": {"convert-writes-only-out_dir"},
+          "ignores_threads": {"threads-as-asked"}, "float64_out": {"fetch-returns-float32"},
+          "drops_output": {"fetch-returns-every-output"}, "squeezes": {"batch-axis-first"},
+          "nan_out": {"outputs-finite"}, "drifts": {"load-is-repeatable", "convert-is-repeatable"},
+          "async_execute": {"execute-waits-for-its-work"},
+          "bad_answers": {"probe-answers-reason-or-none", "option-reason-answers-reason-or-none",
+                          "versions-names-libraries", "invalid-reason-agrees-with-supports"},
+          "refuses": {"convert-succeeds"}, "keeps_out_dir": {"load-succeeds"},
+          "path_in_meta": {"meta-is-json"}, "unloadable": {"backend-loads"}}
+
+
+@pytest.fixture(scope="module")
+def zoo_project(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The zoo installed, and a test module checking it, enabled as a plugin package's tests would."""
+    root = tmp_path_factory.mktemp("zoo")
+    plugin_conformance_zoo.install(root / "site")
+    (root / "conftest.py").write_text('pytest_plugins = ["bench_matrix.conformance"]\n')
+    (root / "test_zoo.py").write_text("from bench_matrix.conformance import BackendConformance\n\n\n"
+                                      "class TestZoo(BackendConformance):\n"
+                                      f"    backends = {tuple(BROKEN)!r}\n\n\n"
+                                      "class TestOneModel(BackendConformance):\n"
+                                      "    backends = ('good_ort',)\n"
+                                      "    models = ('multi_io',)\n")
+    return root
+
+
+def _pytest(root: Path, plugin: object, *args: str) -> None:
+    """pytest on root/test_zoo.py, in this process, with the zoo importable here and in fresh processes."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.syspath_prepend(str(root / "site"))
+        patch.setenv("PYTHONPATH", os.pathsep.join([str(root / "site"), str(TESTS),
+                                                    os.environ.get("PYTHONPATH", "")]))
+        pytest.main([str(root / "test_zoo.py"), "-q", "--tb=line", "-p", "no:cacheprovider", "--basetemp",
+                     str(root / "tmp"), *args], plugins=[plugin])
+
+
+@pytest.fixture(scope="module")
+def zoo(zoo_project: Path) -> list[pytest.TestReport]:
+    """The report of every test phase of the kit run on the zoo."""
+    reports: list[pytest.TestReport] = []
+
+    class Collect:
+        def pytest_runtest_logreport(self, report: pytest.TestReport) -> None:
+            reports.append(report)
+
+    _pytest(zoo_project, Collect())
+    return reports
+
+
+def _backend(report: pytest.TestReport) -> str:
+    """The zoo backend a report's test checks; "one_model" for every test of TestOneModel."""
+    if "TestOneModel" in report.nodeid:
+        return "one_model"
+    return re.search(r"\[([a-z0-9_]+)", report.nodeid).group(1)
+
+
+@pytest.mark.parametrize("backend", list(BROKEN))
+def test_each_broken_rule_is_named(backend: str, zoo: list[pytest.TestReport]) -> None:
+    failed = [r.longreprtext for r in zoo if r.failed and _backend(r) == backend]
+    named = {rule for text in failed for rule in re.findall(r"rule ([a-z0-9_-]+):", text)}
+    assert named == BROKEN[backend], failed
+
+
+def test_writes_outside_out_dir_are_listed(zoo: list[pytest.TestReport]) -> None:
+    text = next(r.longreprtext for r in zoo if r.failed and "writes_only" in r.nodeid)
+    assert all(name in text for name in ("cwd/convert.log", "home/.zoo-marker", ".zoo-cache")), text
+
+
+def test_cases_this_machine_cannot_run_are_skipped_with_the_probe_reason(
+        zoo: list[pytest.TestReport]) -> None:
+    skipped = [r for r in zoo if _backend(r) == "no_device" and "-npu-" in r.nodeid and r.when == "call"]
+    assert skipped and all(r.skipped and r.longrepr[2] == "Skipped: no NPU on this machine (the zoo's probe)"
+                           for r in skipped)
+
+
+def test_the_command_line_narrows_the_backends_checked(zoo_project: Path) -> None:
+    collected: list[str] = []
+
+    class Collect:
+        def pytest_collection_finish(self, session: pytest.Session) -> None:
+            collected.extend(item.nodeid for item in session.items)
+
+    _pytest(zoo_project, Collect(), "--collect-only", "--bench-matrix-backend", "good_ort")
+    assert collected and all("[good_ort" in nodeid for nodeid in collected), collected
+
+
+def test_a_class_chooses_the_models_its_cases_run_on(zoo: list[pytest.TestReport]) -> None:
+    cases = {r.nodeid for r in zoo if _backend(r) == "one_model" and "-cpu-" in r.nodeid and r.passed}
+    assert cases and all(nodeid.endswith("-multi_io]") for nodeid in cases), cases

@@ -1,0 +1,281 @@
+"""torch_compile and aot_inductor against the real torch.compile and AOTInductor on the fitted tiny model.
+
+Inductor compiles take tens of seconds on 2 cores: the compiled session and the package are module
+fixtures."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+TESTS = Path(__file__).resolve().parent
+sys.path.insert(0, str(TESTS))
+
+from conftest import cli, matrix_text  # noqa: E402
+from convert_helper import convert_with, request_for  # noqa: E402
+from test_backends import CALIBRATION, X, _atol  # noqa: E402
+
+import torch  # noqa: E402
+
+from bench_matrix.errors import MatrixError  # noqa: E402
+from bench_matrix.matrix import load_matrix  # noqa: E402
+from bench_matrix.matrix.spec import StrategySpec  # noqa: E402
+from bench_matrix.sources import SourceModel  # noqa: E402
+from bench_matrix.tensors import TensorSpec  # noqa: E402
+from bench_matrix_backends._inductor import compiled_graphs  # noqa: E402
+from bench_matrix_backends.torch_compile import AotInductorBackend, TorchCompileBackend  # noqa: E402
+
+JIT, AOT = TorchCompileBackend(), AotInductorBackend()
+BATCH = 8  # the throughput batch (max_batch) the artifacts are made for
+NONE = StrategySpec("none", "none", {})
+# Run in a fresh process: convert (argv: source JSON, out dir), or load and predict (argv: meta JSON, out dir,
+# inputs .npy), printing JSON.
+CONVERT = f"""
+import json, sys
+from pathlib import Path
+sys.path.insert(0, {str(TESTS)!r})
+from convert_helper import convert_with
+from bench_matrix.sources import SourceModel
+from bench_matrix_backends.torch_compile import AotInductorBackend
+
+source = SourceModel.from_dict(json.loads(sys.argv[1]))
+print(json.dumps(convert_with([], AotInductorBackend(), source, Path(sys.argv[2]), max_batch={BATCH})))
+"""
+PREDICT = f"""
+import json, sys
+from pathlib import Path
+import numpy as np, torch
+from bench_matrix_backends.torch_compile import AotInductorBackend
+
+session = AotInductorBackend().load(Path(sys.argv[2]), json.loads(sys.argv[1]), "cpu", "fp32", 2)
+x = np.load(sys.argv[3])
+outputs = {{n: session.predict({{"input": x[:n]}})[0].tolist() for n in (1, 5, {BATCH})}}
+print(json.dumps({{"outputs": outputs, "info": session.info(), "threads": torch.get_num_threads()}}))
+"""
+
+
+def fresh_process(code: str, *args: str, home: Path) -> str:
+    """Run `code` in a new Python whose temporary directory and home are `home`/tmp and `home`/home."""
+    for name in ("tmp", "home"):
+        (home / name).mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "TMPDIR": str(home / "tmp"), "HOME": str(home / "home")}
+    done = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, env=env,
+                          timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done.stdout.strip().splitlines()[-1]
+
+
+def written(home: Path) -> list[str]:
+    """Every file a fresh_process left in its temporary directory or home."""
+    return sorted(str(p.relative_to(home)) for p in home.rglob("*") if p.is_file())
+
+
+@pytest.fixture(scope="module")
+def jit(source: SourceModel, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, Any], Any]:
+    """The tiny model converted and loaded by torch_compile for batches 1 and 8, one thread."""
+    out = tmp_path_factory.mktemp("jit")
+    meta = convert_with(CALIBRATION, JIT, source, out, max_batch=BATCH)
+    return out, meta, JIT.load(out, meta, "cpu", "fp32", 1)
+
+
+@pytest.fixture(scope="module")
+def aot(source: SourceModel, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict[str, Any]]:
+    """The AOTInductor package of the tiny model for batches 1..8, converted in a fresh process whose
+    temporary directory and home are watched: (that process's home, the artifact folder, the metadata)."""
+    home, out = tmp_path_factory.mktemp("aot-home"), tmp_path_factory.mktemp("aot")
+    meta = fresh_process(CONVERT, json.dumps(source.to_dict()), str(out),
+                         home=home)
+    return home, out, json.loads(meta)
+
+
+def _predict(session: Any, x: np.ndarray) -> np.ndarray:
+    (out,) = session.predict({"input": x})
+    return out
+
+
+# ---- torch.compile -----------------------------------------------------------------------------------------
+
+def test_compiled_outputs_match_eager_at_both_batch_sizes(jit, reference: np.ndarray) -> None:
+    _, _, session = jit
+    for rows in (slice(0, 1), slice(3, 4), slice(0, BATCH), slice(BATCH, 2 * BATCH)):
+        np.testing.assert_allclose(_predict(session, X[rows]), reference[rows], rtol=0,
+                                   atol=_atol("fp32", reference))
+
+
+def test_compile_time_is_reported_apart_from_the_timed_calls(jit) -> None:
+    out, meta, session = jit
+    assert [p.name for p in out.iterdir()] == ["tiny.pt"]  # the source itself: compiling waits for load
+    assert meta["options"] == {"mode": "default", "dynamic": False, "fullgraph": False}
+    info = session.info()
+    assert info["compile_s"] > 0 and info["compiled_batches"] == [BATCH, 1]
+    assert info["graphs"] == 2 and info["graph_breaks"] == 0  # one graph per batch size, nothing left eager
+    assert {k: info[k] for k in ("device", "threads", "mode", "dynamic", "cuda_graphs")} == {
+        "device": "cpu", "threads": 1, "mode": "default", "dynamic": False, "cuda_graphs": False}
+    json.dumps(info)
+
+
+def test_timed_calls_never_recompile(jit) -> None:
+    _, _, session = jit
+    before = compiled_graphs()
+    with torch._dynamo.config.patch(error_on_recompile=True):
+        for rows in (slice(0, 1), slice(5, 6), slice(0, BATCH), slice(BATCH, 2 * BATCH), slice(2, 3)):
+            session.execute(session.prepare({"input": X[rows]}))
+        assert compiled_graphs() == before
+        with pytest.raises(torch._dynamo.exc.RecompileError):  # what a batch size not compiled at load does
+            session.execute(session.prepare({"input": X[:5]}))
+
+
+def test_dynamic_batch_axis_serves_every_batch_with_the_threads_asked(jit, reference: np.ndarray) -> None:
+    out, meta, _ = jit
+    meta = {**meta, "options": {**meta["options"], "dynamic": True}}
+    session = JIT.load(out, meta, "cpu", "fp32", 2)
+    info = session.info()
+    assert info["threads"] == 2 == torch.get_num_threads() and info["dynamic"] is True
+    assert info["graphs"] == 2  # the batch axis symbolic for batches of 2 and more; batch 1 its own graph
+    with torch._dynamo.config.patch(error_on_recompile=True):
+        for rows in (slice(0, 1), slice(0, 5), slice(3, 6), slice(0, BATCH)):
+            np.testing.assert_allclose(_predict(session, X[rows]), reference[rows], rtol=0,
+                                       atol=_atol("fp32", reference))
+
+
+# ---- AOTInductor -------------------------------------------------------------------------------------------
+
+def test_package_conversion_writes_only_into_its_output_directory(aot) -> None:
+    home, out, meta = aot
+    assert [p.name for p in out.iterdir()] == ["model.pt2"]  # Inductor's cache was in out_dir, then removed
+    assert written(home) == []  # nothing in the temporary directory or home
+    assert meta["file"] == "model.pt2" and meta["max_batch"] == BATCH and meta["mode"] == "default"
+    assert meta["inductor_configs"]["cpp.dynamic_threads"] is True
+
+
+def test_package_loads_in_a_fresh_process_for_every_batch_size(aot, reference: np.ndarray,
+                                                               tmp_path: Path) -> None:
+    _, out, meta = aot
+    np.save(tmp_path / "x.npy", X)
+    result = json.loads(fresh_process(PREDICT, json.dumps(meta), str(out),
+                                      str(tmp_path / "x.npy"), home=tmp_path / "load"))
+    for n, got in result["outputs"].items():
+        np.testing.assert_allclose(np.array(got), reference[:int(n)], rtol=0, atol=_atol("fp32", reference))
+    assert result["threads"] == 2 == result["info"]["threads"]
+    assert result["info"]["batch_range"] == [1, BATCH]
+    assert written(tmp_path / "load") == []  # the private Inductor cache went with the process
+
+
+# ---- declarations, options and probes ----------------------------------------------------------------------
+
+@pytest.mark.parametrize("backend", [JIT, AOT], ids=lambda b: b.name)
+def test_sources_they_take_and_refuse(backend, source: SourceModel, tmp_path: Path) -> None:
+    assert backend.option_reason(NONE, "state_dict") is None
+    assert backend.option_reason(NONE, "torch_export") is None
+    reason = backend.option_reason(NONE, "torchscript")
+    assert reason == (f"{backend.name} compiles an nn.Module or a torch.export program (TorchDynamo and "
+                      f"torch.export trace Python code, not TorchScript), but this model is a TorchScript "
+                      f"file; give it as factory + weights (a state_dict) or as a torch.export .pt2 file")
+    free = SourceModel(**{**source.__dict__, "inputs": (TensorSpec("input", (3, None, 16)),)})
+    with pytest.raises(ValueError, match=r"compiles for fixed sample shapes .* declare its length"):
+        convert_with(CALIBRATION, backend, free, tmp_path)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("backend", [JIT, AOT], ids=lambda b: b.name)
+def test_declarations_and_probes(backend, monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    assert backend.invalid_reason("pytorch", "none", "fp32", "cpu") is None
+    assert backend.invalid_reason("pytorch", "none", "bf16", "cuda") is None
+    assert backend.invalid_reason("pytorch", "ptq_static", "int8", "cpu") is not None
+    assert backend.versions()["torch"] == torch.__version__
+    assert backend.probe("cpu", "fp32") is None  # g++ and Python's headers are here
+    if torch.version.cuda is None:
+        assert "CPU-only build" in (backend.probe("cuda", "fp16") or "")
+    monkeypatch.setenv("CXX", "no-such-c++")
+    assert backend.probe("cpu", "fp32") == (
+        "no C++ compiler found (Inductor compiles C++ kernels and wrappers): 'no-such-c++' is not on PATH; "
+        "install g++ (apt-get install g++) or set CXX to a C++ compiler")
+    monkeypatch.delenv("CXX")
+    monkeypatch.setattr("sysconfig.get_path", lambda name: str(tmp_path))
+    headers = backend.probe("cpu", "fp32")
+    if backend is JIT:  # its CPU kernels are Python extension modules; a package's are not
+        assert headers and headers.startswith(f"Python's C headers are missing ({tmp_path}/Python.h;")
+    else:
+        assert headers is None
+
+
+@pytest.mark.parametrize(("options", "problem"), [
+    ("{torch_compile: {mode: fast}}", "backend_options.torch_compile.mode: 'fast' is not allowed; allowed: "
+                                      "default, reduce-overhead, max-autotune, max-autotune-no-cudagraphs"),
+    ("{torch_compile: {dynamic: 'yes'}}", "backend_options.torch_compile.dynamic: expected boolean, got str"),
+    ("{aot_inductor: {mode: reduce-overhead}}", "backend_options.aot_inductor.mode: 'reduce-overhead' is not "
+                                                "allowed; allowed: default, max-autotune-no-cudagraphs"),
+    ("{aot_inductor: {dynamic: true}}", "backend_options.aot_inductor.dynamic: unknown key 'dynamic'; "
+                                        "allowed: mode"),
+])
+def test_option_mistakes_are_refused_with_the_matrix(tiny_project: Path, options: str, problem: str) -> None:
+    path = tiny_project / "m.yaml"
+    text = matrix_text(["torch_compile", "aot_inductor"], ["none"], ["fp32"], ["cpu"])
+    path.write_text(text + "backend_options: {torch_compile: {mode: max-autotune, fullgraph: true}}\n")
+    matrix = load_matrix(path, backends=["torch_compile", "aot_inductor"])
+    assert matrix.backend_options == {"torch_compile": {"mode": "max-autotune", "fullgraph": True}}
+    path.write_text(text + f"backend_options: {options}\n")
+    with pytest.raises(MatrixError) as info:
+        load_matrix(path, backends=["torch_compile", "aot_inductor"])
+    assert any(problem in found for found in info.value.problems), info.value.problems
+
+
+# ---- on an NVIDIA GPU --------------------------------------------------------------------------------------
+
+TOLERANCE = {"fp32": 1e-5, "fp16": 1e-2, "bf16": 3e-2}  # of the largest output, as in test_torch_gpu
+
+
+def _gpu(backend: Any, precision: str, mode: str = "default") -> Any:
+    """A cuda case, skipped with the backend's own probe reason where it cannot run."""
+    reason = backend.probe("cuda", precision)
+    return pytest.param(backend, precision, mode, id=f"{backend.name}-{precision}-{mode}",
+                        marks=[pytest.mark.gpu, pytest.mark.skipif(reason is not None, reason=reason or "")])
+
+
+@pytest.mark.parametrize(("backend", "precision", "mode"), [
+    *(_gpu(JIT, precision) for precision in ("fp32", "fp16", "bf16")),
+    _gpu(JIT, "fp32", "reduce-overhead"), _gpu(AOT, "fp32"), _gpu(AOT, "bf16")])
+def test_cuda_matches_fp32(backend: Any, precision: str, mode: str, source: SourceModel,
+                           reference: np.ndarray, tmp_path: Path) -> None:
+    request = replace(request_for(CALIBRATION, source, tmp_path, "none", precision, "cuda", max_batch=BATCH),
+                      options={"mode": mode})
+    session = backend.load(tmp_path, backend.convert(request), "cuda", precision, 1)
+    for rows in (slice(0, 1), slice(0, BATCH), slice(BATCH, 2 * BATCH)):
+        np.testing.assert_allclose(_predict(session, X[rows]), reference[rows], rtol=0,
+                                   atol=TOLERANCE[precision] * float(np.abs(reference).max()))
+    info = session.info()
+    assert info["device"] == "cuda" and info["tensor_float_32"] is False and info["mode"] == mode
+    if backend is JIT:
+        assert info["cuda_graphs"] == (mode == "reduce-overhead") and info["compile_s"] > 0
+
+
+# ---- end to end --------------------------------------------------------------------------------------------
+
+@pytest.mark.slow
+def test_run_measures_compiled_cells_against_eager(tiny_project: Path) -> None:
+    (tiny_project / "m.yaml").write_text(matrix_text(["pytorch", "torch_compile", "aot_inductor"], ["none"],
+                                                     ["fp32"], ["cpu"]))
+    run = cli(tiny_project, "run", "m.yaml", timeout=900)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "3 ok, 0 skipped, 0 failed" in run.stdout
+    report = cli(tiny_project, "report", "--format", "json")
+    found = {r["cell"]["backend"]: r for r in json.loads(report.stdout)}
+    for name, record in found.items():
+        metrics = record["metrics"]
+        assert record["status"] == "ok", record["reason"]
+        assert metrics["latency_ms"]["n"] >= 5 and metrics["throughput_sps"] > 0
+        assert metrics["max_abs_diff_vs_baseline"] < 1e-4 and metrics["session"]["threads"] == 1
+    compiled = found["torch_compile"]["metrics"]
+    assert 0 < compiled["session"]["compile_s"] < compiled["load_s"]
+    assert compiled["session"]["compiled_batches"] == [8, 1] and compiled["session"]["graphs"] == 2
+    package = found["aot_inductor"]["metrics"]
+    assert package["session"]["batch_range"] == [1, 8] and "compile_s" not in package["session"]
+    assert package["size_bytes"] > found["pytorch"]["metrics"]["size_bytes"]  # compiled code and weights
