@@ -148,9 +148,10 @@ def test_dynamic_batch_axis_serves_every_batch_with_the_threads_asked(jit, refer
 
 # ---- AOTInductor -------------------------------------------------------------------------------------------
 
-def test_package_conversion_writes_only_into_its_output_directory(aot) -> None:
+def test_package_conversion_writes_only_into_its_output_directory(aot, source: SourceModel) -> None:
     home, out, meta = aot
     assert [p.name for p in out.iterdir()] == ["model.pt2"]  # Inductor's cache was in out_dir, then removed
+    assert (out / "model.pt2").stat().st_size > source.path.stat().st_size  # compiled code and the weights
     assert written(home) == []  # nothing in the temporary directory or home
     assert meta["file"] == "model.pt2" and meta["max_batch"] == BATCH and meta["mode"] == "default"
     assert meta["inductor_configs"]["cpp.dynamic_threads"] is True
@@ -165,7 +166,7 @@ def test_package_loads_in_a_fresh_process_for_every_batch_size(aot, reference: n
     for n, got in result["outputs"].items():
         np.testing.assert_allclose(np.array(got), reference[:int(n)], rtol=0, atol=_atol("fp32", reference))
     assert result["threads"] == 2 == result["info"]["threads"]
-    assert result["info"]["batch_range"] == [1, BATCH]
+    assert result["info"]["batch_range"] == [1, BATCH] and "compile_s" not in result["info"]  # compiled before
     assert written(tmp_path / "load") == []  # the private Inductor cache went with the process
 
 
@@ -261,11 +262,11 @@ def test_cuda_matches_fp32(backend: Any, precision: str, mode: str, source: Sour
 
 @pytest.mark.slow
 def test_run_measures_compiled_cells_against_eager(tiny_project: Path) -> None:
-    (tiny_project / "m.yaml").write_text(matrix_text(["pytorch", "torch_compile", "aot_inductor"], ["none"],
-                                                     ["fp32"], ["cpu"]))
+    # aot_inductor's package is converted and loaded in fresh processes by the tests above (and the kit)
+    (tiny_project / "m.yaml").write_text(matrix_text(["pytorch", "torch_compile"], ["none"], ["fp32"], ["cpu"]))
     run = cli(tiny_project, "run", "m.yaml", timeout=900)
     assert run.returncode == 0, run.stdout + run.stderr
-    assert "3 ok, 0 skipped, 0 failed" in run.stdout
+    assert "2 ok, 0 skipped, 0 failed" in run.stdout
     report = cli(tiny_project, "report", "--format", "json")
     found = {r["cell"]["backend"]: r for r in json.loads(report.stdout)}
     for name, record in found.items():
@@ -276,6 +277,3 @@ def test_run_measures_compiled_cells_against_eager(tiny_project: Path) -> None:
     compiled = found["torch_compile"]["metrics"]
     assert 0 < compiled["session"]["compile_s"] < compiled["load_s"]
     assert compiled["session"]["compiled_batches"] == [8, 1] and compiled["session"]["graphs"] == 2
-    package = found["aot_inductor"]["metrics"]
-    assert package["session"]["batch_range"] == [1, 8] and "compile_s" not in package["session"]
-    assert package["size_bytes"] > found["pytorch"]["metrics"]["size_bytes"]  # compiled code and weights
