@@ -55,6 +55,12 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--force", action="store_true", help="re-run cells that already have a stored result")
     run.add_argument("--label", help="a name for this run in the store's history, e.g. a git commit "
                                      "(`compare` and `report --run` accept it)")
+    run.add_argument("--executor", choices=("local", "ray"), default="local",
+                     help="where cells run: this machine, or a Ray cluster (docs/running.md; default: local)")
+    run.add_argument("--address", help="the Ray cluster to use (HOST:6379, ray://HOST:10001 or auto; "
+                                       "default: $RAY_ADDRESS, else a Ray started on this machine)")
+    run.add_argument("--shard", help="I/N: run only shard I of N of the chosen cells (one per machine of a "
+                                     "batch scheduler; `merge` their stores)")
     _filters(run)
     run.set_defaults(handler=_run)
 
@@ -161,10 +167,12 @@ def _load(args: argparse.Namespace):
 
 
 def _run(args: argparse.Namespace, console) -> int:
+    from bench_matrix.executors import open_executor
     from bench_matrix.plan import resolve
-    from bench_matrix.runner import Runner
+    from bench_matrix.runner import Runner, Shard
     from bench_matrix.store import ResultStore
 
+    shard = Shard.parse(args.shard) if args.shard is not None else Shard()
     matrix, ws = _load(args)
     filters = _selected(args)
     if args.results is None:
@@ -172,11 +180,15 @@ def _run(args: argparse.Namespace, console) -> int:
     store = ResultStore(args.results or ws.results, label="--results" if args.results else "results file")
     console.print(f"[bold]bench-matrix {__version__}[/] · {matrix.path} · results in "
                   f"{args.results or ws.results}", highlight=False)
+    executor = None
     try:
+        executor = open_executor(args.executor, ws, args.address)
         plan = resolve(matrix, ws)
-        counts = Runner(plan, ws, store, console, args.label).run(filters, args.force)
+        counts = Runner(plan, ws, store, console, args.label, executor, shard).run(filters, args.force)
     finally:
         store.close()
+        if executor is not None:
+            executor.close()
     invalid = len(plan.by_state("invalid"))
     console.print(f"[bold]done:[/] {counts['ok']} ok, {counts['skipped']} skipped, {counts['failed']} failed, "
                   f"{counts['cached']} already stored" + (f"; {invalid} combinations are not valid "

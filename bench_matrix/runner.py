@@ -1,16 +1,20 @@
-"""Run a plan: prepare data and models, run each cell in its own processes, store each result as it ends."""
+"""Run a plan: prepare data and models, hand each cell to an executor (each job in its own process), store
+each result as it ends."""
 
 from __future__ import annotations
 
 import base64
+import re
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 from bench_matrix.cell import Cell, CellPlan
 from bench_matrix.errors import StepError, UserError
+from bench_matrix.executors import CellResult, CellWork, Executor
+from bench_matrix.executors.local import LocalExecutor
 from bench_matrix.jobs import ConvertJob, DatasetJob, FinetuneJob, MeasureJob, ModelJob, PreparedData
 from bench_matrix.launcher import Outcome, run_job
 from bench_matrix.matrix.load import suggest
@@ -42,6 +46,32 @@ class Filters:
                                 f"{', '.join(present)}{suggest(value, present)}")
 
 
+@dataclass(frozen=True)
+class Shard:
+    """Shard `index` of `count` (1-based): a contiguous block of the chosen cells sorted by key, so every
+    machine given the same matrix and filters computes the same partition."""
+
+    index: int = 1
+    count: int = 1
+
+    @classmethod
+    def parse(cls, text: str) -> "Shard":
+        """`I/N` with 1 <= I <= N; a UserError naming --shard and what is allowed otherwise."""
+        found = re.fullmatch(r"\s*(\d+)\s*/\s*(\d+)\s*", text)
+        index, count = (int(found[1]), int(found[2])) if found else (0, 0)
+        if not found or count < 1 or not 1 <= index <= count:
+            raise UserError(f"--shard {text}: give I/N, this machine's shard I of N shards, whole numbers "
+                            f"with 1 <= I <= N (e.g. --shard 1/4 ... --shard 4/4)")
+        return cls(index, count)
+
+    def select(self, cells: list[CellPlan]) -> list[CellPlan]:
+        ordered = sorted(cells, key=lambda p: p.cell.key)
+        n = len(ordered)
+        begin, end = (self.index - 1) * n // self.count, self.index * n // self.count
+        mine = {p.cell.key for p in ordered[begin:end]}
+        return [p for p in cells if p.cell.key in mine]
+
+
 @dataclass
 class PreparedModel:
     """A model ready for its cells: its source, its data and its reference outputs."""
@@ -52,36 +82,42 @@ class PreparedModel:
 
 
 class Runner:
-    """Runs the runnable cells of a plan one at a time and writes each record as soon as it ends."""
+    """Prepares what the chosen cells share, hands each cell to an executor and writes each record as soon as
+    the cell ends."""
 
     def __init__(self, plan: Plan, workspace: Workspace, store: ResultStore | None, progress_console: Any,
-                 label: str | None = None):
+                 label: str | None = None, executor: Executor | None = None, shard: Shard = Shard()):
         self.plan, self.matrix, self.ws, self.store = plan, plan.matrix, workspace, store
         self.console, self.label, self.host = progress_console, label, environment.host_name()
+        self.executor, self.shard = executor or LocalExecutor(workspace), shard
         self.run_id: int | None = None
         self._datasets: dict[str, PreparedData] = {}
-        self._again: dict[Cell, tuple[CellRecord, MeasureJob]] = {}  # ok cells and their measure job
-        self._samples: dict[Cell, dict[str, bytes]] = {}  # raw latencies of a measured cell, until stored
+        self._again: dict[Cell, tuple[CellRecord, CellResult]] = {}  # ok cells and how they were measured
 
     def run(self, filters: Filters, force: bool) -> dict[str, int]:
         filters.check([p.cell for p in self.plan.cells])
         chosen = [p for p in self.plan.cells if p.state != "invalid" and filters.keep(p.cell)]
         if not chosen:
             raise UserError("no cell of the matrix matches the filters (see `bench-matrix plan`)")
+        chosen = self.executor.decide(self.plan, self.shard.select(chosen))
         todo = [p for p in chosen if p.state == "run" and (force or not self.is_done(p))]
         counts = {"ok": 0, "skipped": 0, "failed": 0,
                   "cached": len([p for p in chosen if p.state == "run"]) - len(todo)}
         begin = time.monotonic()
-        run = self.store.begin_run(str(self.matrix.path), self.host, environment.run_versions(), self.label, _now())
+        run = self.store.begin_run(str(self.matrix.path), self.host, environment.run_versions(), self.label,
+                                   _now())
         self.run_id = run.id
         completed = False
         try:
             self._run_cells(chosen, todo, counts)
             completed = True
         finally:
-            self.store.end_run(run.id, _now(), {"wall_s": round(time.monotonic() - begin, 1), "counts": counts,
-                                                "completed": completed})
+            summary = {"wall_s": round(time.monotonic() - begin, 1), "counts": counts, "completed": completed}
+            self.store.end_run(run.id, _now(), {**summary, **self._shard_summary()})
         return counts
+
+    def _shard_summary(self) -> dict[str, str]:
+        return {"shard": f"{self.shard.index}/{self.shard.count}"} if self.shard.count > 1 else {}
 
     def _run_cells(self, chosen: list[CellPlan], todo: list[CellPlan], counts: dict[str, int]) -> None:
         with RunProgress(self.console, len(todo) * self.matrix.settings.passes) as progress:
@@ -95,32 +131,57 @@ class Runner:
             for model in self.matrix.models:
                 cells = [p for p in todo if p.cell.model == model.name]
                 if cells:
-                    for record in self._run_model(self.plan.models[model.name], cells, progress):
-                        counts[record.status] += 1
+                    self._run_model(self.plan.models[model.name], cells, progress, counts)
+            self._collect(progress, counts, wait=True)
             for number in range(2, self.matrix.settings.passes + 1):
                 self._pass(number, progress)
 
-    def _run_model(self, model: ModelPlan, cells: list[CellPlan], progress: RunProgress):
+    def _run_model(self, model: ModelPlan, cells: list[CellPlan], progress: RunProgress,
+                   counts: dict[str, int]) -> None:
         prepared = self._prepare(model, progress)
         for p in cells:
             started = _now()
             progress.step(f"{model.spec.name} · {p.cell.label}")
             if not prepared.ok:
                 reason = f"preparing model {model.spec.name} failed: {prepared.error}"
-                record = self._record(p, "failed", reason, started)
+                self._finished(self._record(p, "failed", reason, started), None, progress, counts)
+                continue
+            work = self._work(p, model, prepared.value, progress, started)
+            if isinstance(work, CellRecord):
+                self._finished(work, None, progress, counts)
             else:
-                record = self._run_cell(p, model, prepared.value, progress, started)
-            self.store.put(record, self._samples.pop(p.cell, None))
-            progress.finished(record)
-            yield record
+                self.executor.submit(work, progress.phase, progress.tick)
+            self._collect(progress, counts, wait=False)
+
+    def _collect(self, progress: RunProgress, counts: dict[str, int], wait: bool) -> None:
+        """Store the results the executor has (with `wait`: every one still due, each as it ends)."""
+        for result in self.executor.results(wait):
+            p = result.work.plan
+            if not result.ok:
+                record = self._record(p, "failed", result.error, result.work.started, env=result.env,
+                                      artifact=result.artifact)
+                self._finished(record, None, progress, counts)
+                continue
+            measured = result.measured
+            metrics = measured["metrics"]
+            metrics = {**metrics, "latency_passes_p50": [metrics["latency_ms"]["p50"]]}
+            record = self._record(p, "ok", None, result.work.started, metrics=metrics, env=measured["env"],
+                                  artifact=result.artifact)
+            self._finished(record, _samples(measured), progress, counts)
+            self._again[p.cell] = (record, result)
+
+    def _finished(self, record: CellRecord, samples: dict[str, bytes] | None, progress: RunProgress,
+                  counts: dict[str, int]) -> None:
+        self.store.put(record, samples)
+        progress.finished(record)
+        counts[record.status] += 1
 
     def _pass(self, number: int, progress: RunProgress) -> None:
-        """Measure every ok cell once more (fresh process, same artifact); keep the pass with the lowest p50."""
-        settings = self.matrix.settings
-        for cell, (record, job) in self._again.items():
-            progress.step(f"pass {number}/{settings.passes} · {cell.model} · {cell.label}")
-            measured = run_job(job, self.ws.jobs, self.ws.cell_log(cell.key), settings.timeout_s,
-                               settings.threads, progress.phase, progress.tick)
+        """Measure every ok cell once more (fresh process, same artifact); keep the pass with the lowest
+        p50."""
+        for cell, (record, result) in self._again.items():
+            progress.step(f"pass {number}/{self.matrix.settings.passes} · {cell.model} · {cell.label}")
+            measured = self.executor.measure_again(result, progress.phase, progress.tick)
             passes, samples = record.metrics["latency_passes_p50"], None
             if measured.ok:
                 new = measured.value["metrics"]
@@ -171,42 +232,30 @@ class Runner:
         return Outcome(value=PreparedModel(SourceModel.from_dict(outcome.value["source"]), prepared,
                                            Path(outcome.value["reference"])))
 
-    def _run_cell(self, p: CellPlan, model: ModelPlan, prepared: PreparedModel, progress: RunProgress,
-                  started: str) -> CellRecord:
-        settings, cell, log = self.matrix.settings, p.cell, p.log
-        source, facts = prepared.source, None
+    def _work(self, p: CellPlan, model: ModelPlan, prepared: PreparedModel, progress: RunProgress,
+              started: str) -> CellWork | CellRecord:
+        """The cell's jobs, after its fine-tuning (shared preparation: here, cached by content); a failed
+        record when the fine-tuning fails."""
+        settings, cell, source, facts = self.matrix.settings, p.cell, prepared.source, None
         if p.training:  # fine-tune first (all cores, cached): a new source model
             job = FinetuneJob(self.ws, source, p.training, p.trainer, model.task, prepared.data,
                               model.spec.layout, settings.seed)
-            tuned = run_job(job, self.ws.jobs, log, PREPARE_TIMEOUT_S, on_phase=progress.phase, tick=progress.tick)
+            tuned = run_job(job, self.ws.jobs, p.log, PREPARE_TIMEOUT_S, on_phase=progress.phase,
+                            tick=progress.tick)
             if not tuned.ok:
                 return self._record(p, "failed", f"finetune: {tuned.error}", started)
             source, facts = SourceModel.from_dict(tuned.value["source"]), tuned.value["facts"]
-        deadline = time.monotonic() + settings.timeout_s
         convert = ConvertJob(self.ws, cell, p.step, source, prepared.data, model.spec.layout, settings,
                              self.matrix.backend_options.get(cell.backend, {}))
-        converted = run_job(convert, self.ws.jobs, log, settings.timeout_s, settings.threads, progress.phase,
-                            progress.tick)
-        if not converted.ok:
-            return self._record(p, "failed", f"convert: {converted.error}", started)
-        artifact = converted.value["artifact_dir"] + "/model"
-        job = MeasureJob(self.ws, cell, model.task, Path(converted.value["artifact_dir"]),
-                         converted.value["manifest"], converted.value["cached"], source, prepared.data,
-                         model.spec.layout, settings, prepared.reference, self.matrix.metrics,
-                         facts, closed_loop=p.closed_loop)
-        measured = run_job(job, self.ws.jobs, log, max(deadline - time.monotonic(), 1.0), settings.threads,
-                           progress.phase, progress.tick)
-        if not measured.ok:
-            return self._record(p, "failed", f"measure: {measured.error}", started, artifact=artifact)
-        metrics = {**measured.value["metrics"], "latency_passes_p50": [measured.value["metrics"]["latency_ms"]["p50"]]}
-        self._samples[cell] = _samples(measured.value)
-        record = self._record(p, "ok", None, started, metrics=metrics, env=measured.value["env"], artifact=artifact)
-        self._again[cell] = (record, replace(job, closed_loop=None))  # later passes time; they do not drive
-        return record
+        measure = MeasureJob(self.ws, cell, model.task, Path(), {}, False, source, prepared.data,
+                             model.spec.layout, settings, prepared.reference, self.matrix.metrics, facts,
+                             closed_loop=p.closed_loop)
+        return CellWork(p, convert, measure, p.log or self.ws.cell_log(cell.key), started)
 
     def is_done(self, p: CellPlan) -> bool:
-        """Whether this host's newest record of the cell is an ok one of the same fingerprint, every pass made."""
-        record = self.store.latest(p.cell, self.host) if self.store else None
+        """Whether the newest record of the cell on the executor's hosts is an ok one of the same fingerprint,
+        every pass made."""
+        record = self._latest(p.cell) if self.store else None
         return (record is not None and record.status == "ok" and record.fingerprint == p.fingerprint
                 and len(record.metrics.get("latency_passes_p50", [0])) >= self.matrix.settings.passes)
 
@@ -216,11 +265,17 @@ class Runner:
         return record is not None and (record.status, record.reason, record.fingerprint) == (
             "skipped", p.reason, p.fingerprint)
 
+    def _latest(self, cell: Cell) -> CellRecord | None:
+        """The newest record of the cell on any of the executor's hosts."""
+        found = [r for host in sorted(self.executor.hosts()) if (r := self.store.latest(cell, host))]
+        return max(found, key=lambda r: (r.finished_at or r.started_at or "", r.id or 0), default=None)
+
     def _record(self, p: CellPlan, status: str, reason: str | None, started: str, metrics: dict | None = None,
                 env: dict | None = None, artifact: str | None = None) -> CellRecord:
-        return CellRecord(cell=p.cell, status=status, reason=reason, metrics=metrics or {}, artifact_path=artifact,
-                          env=env or environment.capture(), started_at=started, finished_at=_now(),
-                          fingerprint=p.fingerprint, matrix=str(self.matrix.path), run_id=self.run_id)
+        return CellRecord(cell=p.cell, status=status, reason=reason, metrics=metrics or {},
+                          artifact_path=artifact, env=env or environment.capture(), started_at=started,
+                          finished_at=_now(), fingerprint=p.fingerprint, matrix=str(self.matrix.path),
+                          run_id=self.run_id)
 
 
 def _samples(measured: dict[str, Any]) -> dict[str, bytes]:

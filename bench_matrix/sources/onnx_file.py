@@ -51,6 +51,17 @@ def parse_onnx(path: Path, label: str) -> "onnx.ModelProto":
     return model
 
 
+def external_data_files(path: Path) -> list[Path]:
+    """The external data files the ONNX model in `path` reads (those it may read: inside its directory)."""
+    from onnx.external_data_helper import ExternalDataInfo, uses_external_data
+
+    base = path.parent.resolve()
+    tensors = _tensors(parse_onnx(path, str(path)))
+    locations = {ExternalDataInfo(t).location for t in tensors if uses_external_data(t)}
+    readable = (location for location in locations if _location_problem(base, location) is None)
+    return sorted(path.parent / location for location in readable)
+
+
 def _kind(data: bytes) -> str | None:
     """'it is a PNG image' when the bytes start like a known other kind of file."""
     return next((f"it is {what}" for magic, what in MAGIC if data.startswith(magic)), None)
