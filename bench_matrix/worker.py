@@ -3,6 +3,7 @@ job and writes its outcome."""
 
 from __future__ import annotations
 
+import atexit
 import importlib
 import json
 import os
@@ -73,5 +74,14 @@ def main(argv: list[str]) -> int:
     return code
 
 
+def exit_now(code: int) -> None:
+    """End the process once its result is written: exit handlers run (they remove private caches), the
+    interpreter's teardown of TensorFlow's or torch's modules does not (0.4-0.7 s per process)."""
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    exit_now(main(sys.argv[1:]))
