@@ -4,9 +4,9 @@ this machine, what Ray adds per cell (scheduling, shipping, returning results) a
 
 The matrix: `--models` copies of the tests' tiny ONNX model (tests/fuzz_cases.py) x fp32, fp16 through ONNX
 Runtime on the CPU (20 cells by default), with short timing windows. Each simulated node has 1 CPU, its own
-workspace (so shared preparation goes through the object store), host name and timing lock, as real nodes
-would. On a 2-core machine the two nodes share the cores, so their timings overlap in time: the throughput
-figure measures the executor, not honest timing (the overhead figures do not depend on that).
+workspace (so shared preparation goes through the object store) and host name, as real nodes would; both
+share this machine's timing lock, so no two timing phases overlap (as on one real machine): what the
+cluster gains is conversions (and Ray's scheduling) overlapping another cell's measurement.
 
     .venv/bin/python benchmarks/ray_throughput.py [--models 10] [--workdir DIR] [--json OUT]
 """
@@ -59,8 +59,9 @@ def start_cluster(root: Path):
     cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 0, "include_dashboard": False,
                                                            "object_store_memory": memory})
     for name in NODES:
+        # one timing lock for both: they are one machine, so their timing phases must not overlap either
         own = {"BENCH_MATRIX_HOST": name, "BENCH_MATRIX_NODE_WORKSPACE": str(root / name),
-               "BENCH_MATRIX_LOCK_DIR": str(root / f"{name}-lock")}
+               "BENCH_MATRIX_LOCK_DIR": str(root / "machine-lock")}
         cluster.add_node(num_cpus=1, resources={"bench_matrix_timing": 1}, object_store_memory=memory,
                          env_vars=own)
     return cluster
