@@ -203,7 +203,7 @@ def test_user_errors_exit_2_without_traceback(tiny_project):
 
 def test_passes_measure_each_cell_again_and_keep_the_least_disturbed(onnx_project):
     (onnx_project / "m.yaml").write_text(onnx_matrix_text(["tiny"], ["fp32"]).replace(
-        "timeout_s: 120}", "timeout_s: 120, passes: 3}"))
+        "timeout_s: 120,", "timeout_s: 120, passes: 3,"))
     run = cli(onnx_project, "run", "m.yaml")
     assert run.returncode == 0, run.stdout + run.stderr
     assert "p50 per pass:" in run.stdout
