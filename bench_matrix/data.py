@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from functools import partial
@@ -74,12 +75,14 @@ def prepare(spec: DatasetSpec, workspace: Workspace,
     _check_preprocess(spec.preprocess, raw, source(spec))
     labels = _labels(raw, spec)
     index = assign_splits(count(raw.inputs), raw.groups, spec.split, spec.seed, source(spec))
-    out.mkdir(parents=True, exist_ok=True)
+    building = out.with_name(f"{out.name}.building-{os.getpid()}")  # this process's, renamed when complete
+    shutil.rmtree(building, ignore_errors=True)
+    building.mkdir(parents=True)
     for split, rows in index.items():
         for name, array in raw.inputs.items():
-            np.save(out / split_file(split, name), array[rows])
+            np.save(building / split_file(split, name), array[rows])
         if labels is not None:
-            np.save(out / split_file(split, LABELS), labels[rows])
+            np.save(building / split_file(split, LABELS), labels[rows])
     info = {
         "fingerprint": out.name, "format": FORMAT, "kind": spec.kind, "task": spec.task,
         "inputs": [{"name": name, "shape": list(a.shape[1:]), "dtype": str(a.dtype),
@@ -90,10 +93,22 @@ def prepare(spec: DatasetSpec, workspace: Workspace,
                    if raw.groups is not None else None),
         **_label_info(labels, index, raw, spec.task),
     }
-    tmp = out / "info.json.tmp"
-    tmp.write_text(json.dumps(info, indent=1))
-    os.replace(tmp, out / "info.json")
+    (building / "info.json").write_text(json.dumps(info, indent=1))
+    _publish(building, out)
     return out, info
+
+
+def _publish(building: Path, out: Path) -> None:
+    """Rename a complete cache folder into place; when another run published the same one first, keep
+    theirs (same fingerprint, same content): nobody ever reads a folder while it is written."""
+    if out.is_dir() and not (out / "info.json").is_file():
+        shutil.rmtree(out, ignore_errors=True)  # left half-written by an older release or a crash
+    try:
+        building.rename(out)
+    except OSError:
+        if not (out / "info.json").is_file():
+            raise
+        shutil.rmtree(building, ignore_errors=True)
 
 
 def split_file(split: str, name: str) -> str:
