@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 from pathlib import Path
@@ -182,7 +183,9 @@ def _run(args: argparse.Namespace, console) -> int:
                   f"{args.results or ws.results}", highlight=False)
     executor = None
     try:
-        executor = open_executor(args.executor, ws, args.address)
+        connecting = console.status("connecting to the Ray cluster (or starting one here) …")
+        with connecting if args.executor == "ray" else contextlib.nullcontext():
+            executor = open_executor(args.executor, ws, args.address)
         plan = resolve(matrix, ws)
         counts = Runner(plan, ws, store, console, args.label, executor, shard).run(filters, args.force)
     finally:
