@@ -26,7 +26,25 @@ TINY_X = tiny_models.images(16, 2)  # the inputs the `reference` outputs belong 
 # timing set their own settings
 FAST_SETTINGS = ("settings: {min_iterations: 5, min_time_s: 0.02, warmup_iterations: 2, warmup_s: 0.0, "
                  "throughput_time_s: 0.02, batch_size: 8, timeout_s: 120, max_time_s: 2}\n")
+GPU_NOT_RUN = pytest.StashKey[str]()  # the line saying which gpu-marked tests were deselected, and why
 
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Without an NVIDIA GPU (the first reason every GPU probe gives), the gpu-marked tests are deselected and
+    reported in one line instead of skipped one by one."""
+    from bench_matrix.hardware import no_gpu_reason
+
+    gpu = [item for item in items if item.get_closest_marker("gpu")]
+    if not gpu or (reason := no_gpu_reason()) is None:
+        return
+    config.hook.pytest_deselected(items=gpu)
+    items[:] = [item for item in items if not item.get_closest_marker("gpu")]
+    config.stash[GPU_NOT_RUN] = f"{len(gpu)} tests marked gpu not run (deselected): {reason}"
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter, config: pytest.Config) -> None:
+    if line := config.stash.get(GPU_NOT_RUN, None):
+        terminalreporter.write_line(line)
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -191,6 +191,9 @@ class BadAnswers(GoodOrt):
         return None
 
 
+PROBED: list[tuple[str, str]] = []  # NoDevice's probe questions so far in this process
+
+
 class NoDevice(GoodOrt):
     """Runs on an NPU only, which this machine lacks."""
 
@@ -198,6 +201,7 @@ class NoDevice(GoodOrt):
     supports = (Support(("onnx",), ("none",), ("fp32",), ("npu",)),)
 
     def probe(self, target: str, precision: str) -> str | None:
+        PROBED.append((target, precision))
         return "no NPU on this machine (the zoo's probe)"
 
 

@@ -12,6 +12,8 @@ import pytest
 
 from bench_matrix.backends.registry import available
 from bench_matrix.conformance import BackendConformance
+from bench_matrix.conformance.cases import cases_of
+from bench_matrix.conformance.here import Here
 
 TESTS = Path(__file__).resolve().parent
 sys.path.insert(0, str(TESTS))
@@ -26,7 +28,7 @@ COMPILERS = ("aot_inductor", "torch_compile")  # an Inductor compile takes 10-20
 
 
 class TestBuiltInBackends(BackendConformance):
-    """The kit on every backend bench-matrix registers itself (GPU cases skip with their probe's reason)."""
+    """The kit on every backend bench-matrix registers itself (cases this machine cannot run: one skip)."""
 
     backends = tuple(name for name in BUILT_IN if name not in COMPILERS)
 
@@ -75,6 +77,16 @@ def _pytest(root: Path, plugin: object, *args: str) -> None:
                      str(root / "tmp"), *args], plugins=[plugin])
 
 
+class Collected:
+    """The node ids pytest collects."""
+
+    def __init__(self) -> None:
+        self.nodeids: list[str] = []
+
+    def pytest_collection_finish(self, session: pytest.Session) -> None:
+        self.nodeids.extend(item.nodeid for item in session.items)
+
+
 @pytest.fixture(scope="module")
 def zoo(zoo_project: Path) -> list[pytest.TestReport]:
     """The report of every test phase of the kit run on the zoo."""
@@ -89,10 +101,12 @@ def zoo(zoo_project: Path) -> list[pytest.TestReport]:
 
 
 def _backend(report: pytest.TestReport) -> str:
-    """The zoo backend a report's test checks; "one_model" for every test of TestOneModel."""
+    """The zoo backend a report's test checks; "one_model" for every test of TestOneModel, "" for a test of
+    no backend."""
     if "TestOneModel" in report.nodeid:
         return "one_model"
-    return re.search(r"\[([a-z0-9_]+)", report.nodeid).group(1)
+    found = re.search(r"\[([a-z0-9_]+)", report.nodeid)
+    return found.group(1) if found else ""
 
 
 @pytest.mark.parametrize("backend", list(BROKEN))
@@ -107,22 +121,46 @@ def test_writes_outside_out_dir_are_listed(zoo: list[pytest.TestReport]) -> None
     assert all(name in text for name in ("cwd/convert.log", "home/.zoo-marker", ".zoo-cache")), text
 
 
-def test_cases_this_machine_cannot_run_are_skipped_with_the_probe_reason(
+def test_cases_this_machine_cannot_run_get_no_tests_and_one_skip_with_the_probe_reason(
         zoo: list[pytest.TestReport]) -> None:
-    skipped = [r for r in zoo if _backend(r) == "no_device" and "-npu-" in r.nodeid and r.when == "call"]
-    assert skipped and all(r.skipped and r.longrepr[2] == "Skipped: no NPU on this machine (the zoo's probe)"
-                           for r in skipped)
+    assert not [r.nodeid for r in zoo if _backend(r) == "no_device" and "-npu-" in r.nodeid]
+    calls = {r.nodeid.split("::")[1]: r for r in zoo
+             if r.nodeid.endswith("::test_cases_not_run_here") and r.when == "call"}
+    assert calls["TestZoo"].skipped and calls["TestZoo"].longrepr[2] == (
+        "Skipped: 3 cases not run on this machine (no tests generated), by reason:\n"
+        "- 3 cases (no_device on npu): no NPU on this machine (the zoo's probe)")
+    assert calls["TestOneModel"].passed  # it runs every case of good_ort
+
+
+def test_the_terminal_summary_says_once_what_is_not_run(zoo_project: Path,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """Each probe question is asked once, at collection, however many cases and classes share it."""
+    capsys.readouterr()
+    plugin_conformance_zoo.PROBED.clear()
+    _pytest(zoo_project, collect := Collected(), "--collect-only", "--bench-matrix-backend", "no_device")
+    out = capsys.readouterr().out
+    assert plugin_conformance_zoo.PROBED == [("npu", "fp32")]
+    unwanted = [nodeid for nodeid in collect.nodeids if "-npu-" in nodeid or "NOTSET" in nodeid]
+    assert collect.nodeids and not unwanted, collect.nodeids
+    assert out.count("no NPU on this machine") == 1 and "bench-matrix conformance kit" in out, out
+    assert "3 cases (no_device on npu): no NPU on this machine (the zoo's probe)" in out, out
+
+
+def test_a_probe_that_raises_is_the_reason_its_cases_are_not_run() -> None:
+    class Raises(plugin_conformance_zoo.NoDevice):
+        def probe(self, target: str, precision: str) -> str | None:
+            raise RuntimeError("the driver API is missing")
+
+    backend = Raises()
+    (case,) = cases_of(backend, ("regression",))
+    reason = Here().reason(backend, case)
+    assert reason == "probe('npu', 'fp32') raised RuntimeError: the driver API is missing"
 
 
 def test_the_command_line_narrows_the_backends_checked(zoo_project: Path) -> None:
-    collected: list[str] = []
-
-    class Collect:
-        def pytest_collection_finish(self, session: pytest.Session) -> None:
-            collected.extend(item.nodeid for item in session.items)
-
-    _pytest(zoo_project, Collect(), "--collect-only", "--bench-matrix-backend", "good_ort")
-    assert collected and all("[good_ort" in nodeid for nodeid in collected), collected
+    _pytest(zoo_project, collect := Collected(), "--collect-only", "--bench-matrix-backend", "good_ort")
+    cases = [nodeid for nodeid in collect.nodeids if "[" in nodeid]
+    assert cases and all("[good_ort" in nodeid for nodeid in cases), collect.nodeids
 
 
 def test_a_class_chooses_the_models_its_cases_run_on(zoo: list[pytest.TestReport]) -> None:

@@ -1,6 +1,7 @@
 """ONNX Runtime's CUDA and TensorRT side with the real onnxruntime package: provider options, the TensorRT
 calibration table, probe reasons, fallback detection and the I/O-bound session. Most of it runs on a CPU-only
-build; the test marked gpu needs the TensorRT provider and skips elsewhere with the probe's reason."""
+build; the tests marked gpu need an NVIDIA GPU (deselected without one) and their provider (skipped with the
+probe's reason without it)."""
 
 from __future__ import annotations
 

@@ -1,7 +1,8 @@
 """The PyTorch backends on GPU targets: precisions declared per target, GPU probes, dtype plumbing, Torch-TensorRT.
 
-On a machine without a GPU the GPU-only tests are skipped with the backend's own probe reason; everything else runs
-on the CPU with the real torch (bf16 on the CPU only checks the dtype plumbing; it is not a supported cell)."""
+Without an NVIDIA GPU the GPU-only tests are deselected (tests/conftest.py says so in one line); with one but
+without a library they skip with the backend's own probe reason. Everything else runs on the CPU with the real
+torch (bf16 on the CPU only checks the dtype plumbing; it is not a supported cell)."""
 
 from __future__ import annotations
 

@@ -17,7 +17,7 @@ from bench_matrix.backends.registry import BackendLoadError, load_backend
 from bench_matrix.conformance.cases import Case, RuleBroken
 from bench_matrix.conformance.checks import reported_threads
 from bench_matrix.conformance.fresh import infos
-from bench_matrix.conformance.models import BUILDERS, LARGE, THREADS, KitModel, build
+from bench_matrix.conformance.models import LARGE, THREADS, KitModel, build
 from bench_matrix.conformance.watch import watched
 from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.tensors import take
@@ -76,8 +76,6 @@ class Kit:
 
     def model(self, framework: str, name: str) -> KitModel:
         def make() -> KitModel:
-            if framework not in BUILDERS:
-                pytest.skip(f"the conformance kit has no {framework} models (it has {', '.join(BUILDERS)})")
             try:
                 return build(framework, name, self.root / "models" / framework)
             except ImportError as exc:
@@ -85,25 +83,12 @@ class Kit:
 
         return self._once(("model", framework, name), make)
 
-    def runnable(self, case: Case) -> tuple[Backend, KitModel]:
-        """The backend and model of a case this machine can run; skipped with the backend's reason if not."""
-        backend, model = self.backend(case.backend), self.model(case.framework, case.model)
-        step = StrategySpec(case.strategy, case.strategy)
-        if invalid := (backend.invalid_reason(case.framework, case.strategy, case.precision, case.target)
-                       or backend.option_reason(step, model.source.format)):
-            pytest.skip(f"not valid for the kit's {model.source.format} model: {invalid}")
-        reasons = [backend.probe(case.target, case.precision),
-                   backend.probe_source(case.framework, model.source.format)]
-        if skip := "; ".join(r for r in reasons if r):
-            pytest.skip(skip)
-        return backend, model
-
     def artifact(self, case: Case, which: str = "first") -> Artifact:
         """The case's artifact `which`: "first", or "second" (converted again, to compare)."""
         return self._once(("artifact", case, which), lambda: self._convert(case, which))
 
     def _convert(self, case: Case, which: str) -> Artifact:
-        backend, model = self.runnable(case)
+        backend, model = self.backend(case.backend), self.model(case.framework, case.model)
         place = self.root / "artifacts" / case.id
         out = place / f"{which}.tmp" / "model"
         out.mkdir(parents=True)

@@ -1,5 +1,6 @@
-"""The pytest side of the kit: the --bench-matrix-backend option, one test per backend or per case of every
-BackendConformance subclass, and the kit each such class shares between its tests."""
+"""The pytest side of the kit: the --bench-matrix-backend option, one test per backend or per case this
+machine runs of every BackendConformance subclass, the cases it cannot run reported once (a skipped test per
+class and the terminal summary), and the kit each such class shares between its tests."""
 
 from __future__ import annotations
 
@@ -7,12 +8,14 @@ from pathlib import Path
 
 import pytest
 
-from bench_matrix.backends.registry import BackendLoadError, load_backend
-from bench_matrix.conformance.cases import Case, cases_of
+from bench_matrix.conformance.cases import Case
+from bench_matrix.conformance.here import Here, NotRun, describe
 from bench_matrix.conformance.kit import Kit
 from bench_matrix.conformance.suite import ONCE_PER_COMBINATION, BackendConformance
 
 OPTION = "--bench-matrix-backend"
+HERE = pytest.StashKey[Here]()
+SELECTED = pytest.StashKey[NotRun]()  # the cases not run of the classes whose tests were selected
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -25,29 +28,57 @@ def checked_backends(config: pytest.Config, cls: type[BackendConformance]) -> li
     return list(config.getoption("bench_matrix_backends", default=None) or cls.backends)
 
 
-def _cases(names: list[str], models: tuple[str, ...]) -> list[Case]:
-    """Every case of the named backends that import (the others fail test_backend_loads_and_declares)."""
-    found = []
-    for name in names:
-        try:
-            found += cases_of(load_backend(name), models)
-        except BackendLoadError:
-            continue
-    return found
+def split(config: pytest.Config, cls: type[BackendConformance]) -> tuple[list[Case], NotRun]:
+    """The cases of the class's backends that this machine runs, and the others with why not (asked once)."""
+    here = config.stash.setdefault(HERE, Here())
+    return here.split(tuple(checked_backends(config, cls)), cls.models)
 
 
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     cls = metafunc.cls
     if cls is None or not issubclass(cls, BackendConformance):
         return
-    names = checked_backends(metafunc.config, cls)
     if "backend_name" in metafunc.fixturenames:
-        metafunc.parametrize("backend_name", names)
+        metafunc.parametrize("backend_name", checked_backends(metafunc.config, cls))
     if "case" in metafunc.fixturenames:
-        cases = _cases(names, cls.models)
+        cases = split(metafunc.config, cls)[0]
         if metafunc.function.__name__ in ONCE_PER_COMBINATION:
             cases = [case for case in cases if case.model == cls.models[0]]
         metafunc.parametrize("case", cases, ids=[case.id for case in cases])
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """A case test of a class with no case to run here (pytest's empty parameter set) is deselected, not
+    skipped: test_cases_not_run_here says why."""
+    empty = [item for item in items if _without_case(item)]
+    if empty:
+        config.hook.pytest_deselected(items=empty)
+        items[:] = [item for item in items if not _without_case(item)]
+
+
+def _without_case(item: pytest.Item) -> bool:
+    params = getattr(getattr(item, "callspec", None), "params", {})
+    return "case" in params and not isinstance(params["case"], Case)
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Keep, for the terminal summary, the cases not run of every kit class with a test selected."""
+    classes = [cls for cls in dict.fromkeys(getattr(item, "cls", None) for item in session.items)
+               if isinstance(cls, type) and issubclass(cls, BackendConformance)]
+    not_run = {case: reason for cls in classes for case, reason in split(session.config, cls)[1]}
+    session.config.stash[SELECTED] = list(not_run.items())
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter, config: pytest.Config) -> None:
+    if not_run := config.stash.get(SELECTED, []):
+        terminalreporter.write_sep("=", "bench-matrix conformance kit")
+        terminalreporter.write_line(describe(not_run))
+
+
+@pytest.fixture
+def cases_not_run(request: pytest.FixtureRequest) -> NotRun:
+    """The cases of the test's class this machine cannot run, each with why (decided at collection)."""
+    return split(request.config, request.cls)[1]
 
 
 @pytest.fixture(scope="class")

@@ -5,10 +5,13 @@ from __future__ import annotations
 import json
 from typing import Any, ClassVar
 
+import pytest
+
 from bench_matrix.backends.base import Session, Support
 from bench_matrix.conformance.cases import REPEAT, SOURCE_FORMATS, TOLERANCES, Case, RuleBroken, Tolerance, \
     combinations, option_variants, reason_problem
 from bench_matrix.conformance.checks import bounds, check_close, check_fetched, pending_work, reported_threads
+from bench_matrix.conformance.here import NotRun, describe
 from bench_matrix.conformance.kit import Kit
 from bench_matrix.conformance.models import MODELS, THREADS
 from bench_matrix.matrix.spec import StrategySpec
@@ -103,6 +106,11 @@ class BackendConformance:
         if not (isinstance(reason, str) and reason.strip()):
             raise RuleBroken(rule, f"invalid_reason{undeclared} returned {reason!r}, not why it is not "
                                    f"declared")
+
+    def test_cases_not_run_here(self, cases_not_run: NotRun) -> None:
+        """Skipped, saying once which cases this machine cannot run and why: they get no tests here."""
+        if cases_not_run:
+            pytest.skip(describe(cases_not_run))
 
     def test_converts(self, case: Case, conformance_kit: Kit) -> None:
         conformance_kit.artifact(case)
