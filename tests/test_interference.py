@@ -1,5 +1,6 @@
-"""Interference from what the OS reports: a real CPU-bound competitor on the measuring CPU is seen, and a
-timed phase it disturbs is re-measured or flagged."""
+"""Interference from what the OS reports: its arithmetic on counts given by hand, and end to end, that a real
+CPU-bound competitor on the measuring CPU is seen and gets a timed phase flagged (asserting only what more
+load would not change; the re-measuring decisions on scripted figures: test_timing.py)."""
 
 from __future__ import annotations
 
@@ -15,8 +16,16 @@ from dataclasses import replace
 import pytest
 
 from bench_matrix.measure import interference, timing
-from bench_matrix.measure.interference import Interference, Limits, Sampler, cpu_jiffies
-from bench_matrix.measure.timing import LoopSettings, steady_time_calls
+from bench_matrix.measure.interference import (
+    CLOCK_TICKS,
+    Interference,
+    Limits,
+    Reading,
+    Sampler,
+    between,
+    cpu_jiffies,
+)
+from bench_matrix.measure.timing import REAL, LoopSettings, steady_time_calls
 from conftest import cli, onnx_matrix_text
 
 CPU = max(os.sched_getaffinity(0))
@@ -63,6 +72,28 @@ def test_proc_stat_is_read_for_every_cpu():
     assert all(busy >= 0 and steal >= 0 for busy, steal in jiffies.values())
 
 
+def ticks(seconds: float) -> int:
+    return round(seconds * CLOCK_TICKS)
+
+
+def test_the_figures_between_two_readings_are_shares_of_the_window():
+    begin = Reading(wall_s=10.0, own_cpu_s=3.0, preemptions=5, cpus=(1,),
+                    jiffies={0: (ticks(10), ticks(0.07)), 1: (ticks(20), ticks(0.09))})
+    end = Reading(wall_s=12.0, own_cpu_s=4.0, preemptions=505, cpus=(1,),
+                  jiffies={0: (ticks(10.6), ticks(0.07)), 1: (ticks(21.8), ticks(0.19)),
+                           2: (ticks(0.5), 0)})  # CPU 2 came online meanwhile: left out
+    seen = between(begin, end)
+    assert (seen.wall_s, seen.cpus, seen.own_cpu_s, seen.preemptions) == (2.0, (1,), 1.0, 500)
+    assert seen.other_cpu_s == pytest.approx(0.8)  # CPU 1 was busy 1.8 s, 1 s of it ours
+    assert seen.other_share == pytest.approx(0.4) and seen.steal_share == pytest.approx(0.05)
+    assert seen.machine_share == pytest.approx((0.6 + 1.8 - 1.0) / (2 * 2.0))  # others' time on both CPUs
+    assert seen.cpu_busy == pytest.approx({0: 0.3, 1: 0.9})
+    lagging = between(begin, replace(end, own_cpu_s=5.0, jiffies=begin.jiffies))  # our 2 s not yet ticked
+    assert lagging.other_cpu_s == 0 and lagging.machine_share == 0  # never less than nothing
+    unread = between(replace(begin, jiffies={}), replace(end, jiffies={}))  # no /proc/stat
+    assert (unread.other_share, unread.machine_share, unread.steal_share, unread.cpu_busy) == (0, 0, 0, {})
+
+
 def test_a_competitor_on_the_measuring_cpu_shows_as_other_processes_and_preemptions():
     with pinned(CPU):
         competitor = start_competitor(CPU)
@@ -74,11 +105,9 @@ def test_a_competitor_on_the_measuring_cpu_shows_as_other_processes_and_preempti
         finally:
             stop(competitor)
     assert seen.cpus == (CPU,) and seen.wall_s >= 1.0
-    assert seen.other_share > 0.3  # the scheduler shares the CPU about half and half
-    assert 0.2 < seen.own_cpu_s / seen.wall_s < 0.7
+    assert seen.own_cpu_s < 0.7 * seen.wall_s  # the scheduler shares the CPU about half and half (or worse)
+    assert seen.other_share > Limits().other_share and "of the measuring CPU(s)" in seen.problem(Limits())
     assert seen.preemptions_per_s > 40  # alone: about 10 a second; sharing the CPU: time slices of a few ms
-    assert seen.cpu_busy[CPU] > 0.9
-    assert "of the measuring CPU(s)" in seen.problem(Limits())
 
 
 def test_problem_names_each_figure_above_its_limit():
@@ -100,42 +129,19 @@ def test_a_window_too_short_for_the_tick_counts_is_recorded_but_never_judged():
     assert replace(short, wall_s=interference.JUDGED_FROM_S).problem(Limits()) is not None
 
 
-def test_a_competitor_started_during_the_timing_gets_the_phase_re_measured(monkeypatch):
-    monkeypatch.setattr(timing, "RETRY_PAUSE_S", 0.0)
-    calls, competitors = [0], []
-
-    def call(x: object) -> None:
-        calls[0] += 1
-        if calls[0] == 200:  # a tenth into the first attempt
-            competitors.append(start_competitor(CPU))
-        if calls[0] == 2000 and competitors:  # the first attempt's last call
-            stop(competitors.pop())
-        work(x)
-
-    settings = LoopSettings(0, 0.0, min_iterations=2000, min_time_s=0.0, max_time_s=30.0)
-    with pinned(CPU):
-        try:
-            phase = steady_time_calls(call, [None], settings, Limits())
-        finally:
-            for proc in competitors:
-                stop(proc)
-    first = phase.attempts[0]
-    assert first.interference.other_share > Limits().other_share and first.disturbed is not None
-    assert len(phase.attempts) >= 2  # measured again; the later attempts ran without the competitor
-    assert phase.attempts[1].interference.other_share < first.interference.other_share
-
-
-def test_a_competitor_that_stays_gets_the_phase_flagged(monkeypatch):
-    monkeypatch.setattr(timing, "RETRY_PAUSE_S", 0.0)
+def test_a_competitor_that_stays_gets_the_phase_flagged():
+    pauses: list[float] = []
+    without_pauses = replace(REAL, sleep=pauses.append)  # the machine's clock and sampler; pauses only noted
     settings = LoopSettings(0, 0.0, min_iterations=400, min_time_s=interference.JUDGED_FROM_S,
                             max_time_s=30.0)
     with pinned(CPU):
         competitor = start_competitor(CPU)
         try:
-            phase = steady_time_calls(work, [None], settings, Limits())
+            phase = steady_time_calls(work, [None], settings, Limits(), instruments=without_pauses)
         finally:
             stop(competitor)
     assert len(phase.attempts) == timing.ATTEMPTS and all(a.disturbed for a in phase.attempts)
+    assert pauses == [timing.RETRY_PAUSE_S, 2 * timing.RETRY_PAUSE_S]
     assert "other processes took" in phase.disturbed
     record = timing.interference_record({"latency": phase}, Limits())
     assert record["flagged"] is True and record["reason"].startswith("latency: ")

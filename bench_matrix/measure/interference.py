@@ -77,32 +77,54 @@ def cpu_jiffies() -> dict[int, tuple[int, int]]:
             for cpu, v in counts.items()}
 
 
+@dataclass(frozen=True)
+class Reading:
+    """The OS's counts at one moment: wall clock (s), this process's CPU time (s), its involuntary context
+    switches and CPUs (its affinity), and every CPU's (busy, steal) ticks since boot."""
+
+    wall_s: float
+    own_cpu_s: float
+    preemptions: int
+    cpus: tuple[int, ...]
+    jiffies: dict[int, tuple[int, int]]
+
+
+def read_counts() -> Reading:
+    """This moment's Reading, from perf_counter, getrusage, the affinity and /proc/stat."""
+    wall, usage, jiffies = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF), cpu_jiffies()
+    cpus = tuple(sorted(os.sched_getaffinity(0)))
+    return Reading(wall, usage.ru_utime + usage.ru_stime, usage.ru_nivcsw, cpus, jiffies)
+
+
+def between(begin: Reading, end: Reading) -> Interference:
+    """The interference from `begin` to `end`, on the CPUs the process had at `end`."""
+    wall = max(end.wall_s - begin.wall_s, 1e-9)
+    own = end.own_cpu_s - begin.own_cpu_s
+    delta = {cpu: (busy - begin.jiffies[cpu][0], steal - begin.jiffies[cpu][1])
+             for cpu, (busy, steal) in end.jiffies.items() if cpu in begin.jiffies}
+    ours = [delta[cpu] for cpu in end.cpus if cpu in delta]
+    other = max(sum(busy for busy, _ in ours) / CLOCK_TICKS - own, 0.0)
+    machine = max(sum(busy for busy, _ in delta.values()) / CLOCK_TICKS - own, 0.0)
+    return Interference(
+        wall_s=wall, cpus=end.cpus, own_cpu_s=own, other_cpu_s=other,
+        other_share=other / (wall * len(ours)) if ours else 0.0,
+        machine_share=machine / (wall * len(delta)) if delta else 0.0,
+        steal_share=sum(steal for _, steal in ours) / CLOCK_TICKS / (wall * len(ours)) if ours else 0.0,
+        preemptions=end.preemptions - begin.preemptions,
+        cpu_busy={cpu: busy / CLOCK_TICKS / wall for cpu, (busy, _) in delta.items()})
+
+
 class Sampler:
     """`start()` before a timed phase and `stop()` after it give the interference during it."""
 
     def __init__(self) -> None:
-        self._begin: tuple[float, resource.struct_rusage, dict[int, tuple[int, int]]] | None = None
+        self._begin: Reading | None = None
 
     def start(self) -> None:
-        self._begin = (time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF), cpu_jiffies())
+        self._begin = read_counts()
 
     def stop(self) -> Interference:
-        end, usage, jiffies = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF), cpu_jiffies()
+        end = read_counts()
         if self._begin is None:
             raise RuntimeError("Sampler.stop() without start()")
-        begin, before, then = self._begin
-        wall = max(end - begin, 1e-9)
-        own = (usage.ru_utime + usage.ru_stime) - (before.ru_utime + before.ru_stime)
-        cpus = tuple(sorted(os.sched_getaffinity(0)))
-        delta = {cpu: (jiffies[cpu][0] - then[cpu][0], jiffies[cpu][1] - then[cpu][1])
-                 for cpu in jiffies if cpu in then}
-        ours = [delta[cpu] for cpu in cpus if cpu in delta]
-        other = max(sum(busy for busy, _ in ours) / CLOCK_TICKS - own, 0.0)
-        machine = max(sum(busy for busy, _ in delta.values()) / CLOCK_TICKS - own, 0.0)
-        return Interference(
-            wall_s=wall, cpus=cpus, own_cpu_s=own, other_cpu_s=other,
-            other_share=other / (wall * len(ours)) if ours else 0.0,
-            machine_share=machine / (wall * len(delta)) if delta else 0.0,
-            steal_share=sum(steal for _, steal in ours) / CLOCK_TICKS / (wall * len(ours)) if ours else 0.0,
-            preemptions=usage.ru_nivcsw - before.ru_nivcsw,
-            cpu_busy={cpu: busy / CLOCK_TICKS / wall for cpu, (busy, _) in delta.items()})
+        return between(self._begin, end)

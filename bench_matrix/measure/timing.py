@@ -15,9 +15,23 @@ from bench_matrix.measure.interference import Interference, Limits, Sampler
 from bench_matrix.measure.stats import relative_width
 
 T = TypeVar("T")
+Clock = Callable[[], int]  # nanoseconds, like time.perf_counter_ns
 DRIFT_LIMIT = 0.05  # chunk medians of one window may differ by this fraction of the overall median
 ATTEMPTS = 3  # timed windows per phase at most: the first, then re-measurements of an unclean one
 RETRY_PAUSE_S = 0.5  # before re-measuring a disturbed window, n times this (n-th retry): load may pass
+
+
+@dataclass(frozen=True)
+class Instruments:
+    """What a timed phase reads and waits with: a clock in ns, a new interference sampler for each attempt
+    and the pause before re-measuring; tests pass scripted ones."""
+
+    clock: Clock = time.perf_counter_ns
+    samplers: Callable[[], Sampler] = Sampler
+    sleep: Callable[[float], None] = time.sleep
+
+
+REAL = Instruments()  # the machine's: what every production caller uses
 
 
 @dataclass(frozen=True)
@@ -35,10 +49,9 @@ class LoopSettings:
 
 
 def time_calls(call: Callable[[Any], Any], inputs: list[Any], settings: LoopSettings,
-               sampler: Sampler | None = None) -> np.ndarray:
+               sampler: Sampler | None = None, clock: Clock = time.perf_counter_ns) -> np.ndarray:
     """Durations in ns of `call(inputs[i % len])` (the call must return only when the work is done); `sampler`
     is started after the warm-up."""
-    clock = time.perf_counter_ns
     n_inputs = len(inputs)
     i = 0
     start = clock()
@@ -132,15 +145,15 @@ class Phase(Generic[T]):
 
 def until_clean(measure: Callable[[Sampler], T], unsteady: Callable[[T], str | None],
                 figures: Callable[[T], dict[str, float]], cost: Callable[[T], float], limits: Limits,
-                attempts: int = ATTEMPTS) -> Phase[T]:
+                attempts: int = ATTEMPTS, instruments: Instruments = REAL) -> Phase[T]:
     """Run `measure` (which starts the sampler where its timing begins) until an attempt is neither
     disturbed under `limits` nor `unsteady`; after `attempts` such ones, keep the undisturbed one of lowest
     `cost` (any of lowest `cost` if all were disturbed)."""
     tries: list[Attempt[T]] = []
     for number in range(attempts):
         if tries and tries[-1].disturbed:  # other work may pass; drift is as often the runtime's own
-            time.sleep(RETRY_PAUSE_S * number)
-        sampler = Sampler()
+            instruments.sleep(RETRY_PAUSE_S * number)
+        sampler = instruments.samplers()
         result = measure(sampler)
         interference = sampler.stop()
         tries.append(Attempt(result, figures(result), interference, interference.problem(limits),
@@ -152,7 +165,7 @@ def until_clean(measure: Callable[[Sampler], T], unsteady: Callable[[T], str | N
 
 
 def steady_time_calls(call: Callable[[Any], Any], inputs: list[Any], settings: LoopSettings, limits: Limits,
-                      attempts: int = ATTEMPTS) -> Phase[np.ndarray]:
+                      attempts: int = ATTEMPTS, instruments: Instruments = REAL) -> Phase[np.ndarray]:
     """time_calls, repeated while a window was disturbed or drifted (chunk medians more than DRIFT_LIMIT
     apart); when every attempt was, the one with the lowest median is kept (interference only adds time)."""
     def drifted(durations: np.ndarray) -> str | None:
@@ -161,8 +174,11 @@ def steady_time_calls(call: Callable[[Any], Any], inputs: list[Any], settings: L
             return None
         return f"chunk medians drifted by {spread:.0%} (limit {DRIFT_LIMIT:.0%})"
 
-    return until_clean(lambda sampler: time_calls(call, inputs, settings, sampler), drifted, _latency_figures,
-                       lambda durations: float(np.median(durations)), limits, attempts)
+    def measure(sampler: Sampler) -> np.ndarray:
+        return time_calls(call, inputs, settings, sampler, instruments.clock)
+
+    return until_clean(measure, drifted, _latency_figures, lambda durations: float(np.median(durations)),
+                       limits, attempts, instruments)
 
 
 def _latency_figures(durations_ns: np.ndarray) -> dict[str, float]:
@@ -172,14 +188,13 @@ def _latency_figures(durations_ns: np.ndarray) -> dict[str, float]:
 
 
 def throughput(call: Callable[[Any], Any], batch: Any, batch_size: int, seconds: float,
-               sampler: Sampler | None = None) -> dict[str, Any]:
+               sampler: Sampler | None = None, clock: Clock = time.perf_counter_ns) -> dict[str, Any]:
     """Samples per second at `batch_size`: two warm-up batches, then at least 3 batches and `seconds`; with
     each batch's duration in ns ("batch_ns", raw samples kept for `compare`, not a metric)."""
     for _ in range(2):
         call(batch)
     if sampler is not None:
         sampler.start()
-    clock = time.perf_counter_ns
     stamps = [clock()]
     while len(stamps) < 4 or stamps[-1] - stamps[0] < seconds * 1e9:
         call(batch)
@@ -189,11 +204,13 @@ def throughput(call: Callable[[Any], Any], batch: Any, batch_size: int, seconds:
 
 
 def steady_throughput(call: Callable[[Any], Any], batch: Any, batch_size: int, seconds: float, limits: Limits,
-                      attempts: int = ATTEMPTS) -> Phase[dict[str, float]]:
+                      attempts: int = ATTEMPTS, instruments: Instruments = REAL) -> Phase[dict[str, float]]:
     """throughput, repeated while disturbed; when every attempt was, the fastest is kept."""
-    return until_clean(lambda sampler: throughput(call, batch, batch_size, seconds, sampler), lambda _: None,
-                       lambda rate: {"throughput_sps": rate["throughput_sps"]},
-                       lambda rate: -rate["throughput_sps"], limits, attempts)
+    def measure(sampler: Sampler) -> dict[str, Any]:
+        return throughput(call, batch, batch_size, seconds, sampler, instruments.clock)
+
+    return until_clean(measure, lambda _: None, lambda rate: {"throughput_sps": rate["throughput_sps"]},
+                       lambda rate: -rate["throughput_sps"], limits, attempts, instruments)
 
 
 def interference_record(phases: dict[str, Phase[Any]], limits: Limits) -> dict[str, Any]:
