@@ -17,16 +17,16 @@ import numpy as np
 from bench_matrix.data_readers import GROUPS, LABELS, npz_headers, read_npz, refuse_non_finite, require_file
 from bench_matrix.errors import UserError
 from bench_matrix.image_readers import first_class_image_size, read_class_folders, read_folders
-from bench_matrix.images import geometric, geometric_shape, in_layout, to_model_input
+from bench_matrix.images import (GEOMETRIC, check_preprocess, geometric, geometric_shape, in_layout,
+                                 pixel_scale, to_model_input, value_range)
 from bench_matrix.matrix.spec import DatasetSpec, LabelSpec, Preprocess
 from bench_matrix.tensors import SINGLE, Inputs, TensorSpec, count, random_inputs, specs_to_list
+from bench_matrix.sources.code import module_file
 from bench_matrix.workspace import Workspace, digest, tree_sha256
 
 SPLITS = ("train", "calibration", "test")
 FORMAT = 2  # of the cache: {split}__{input}.npy per input, {split}__y.npy, info.json
 BUILTIN_TASKS = {"driving": "regression", "driving_bends": "classification"}
-GEOMETRIC = ("crop", "resize", "resize_shorter", "center_crop")
-IMAGE_ONLY = (*GEOMETRIC, "mean", "std")
 
 
 @dataclass(frozen=True)
@@ -48,13 +48,21 @@ def fingerprint(spec: DatasetSpec, inputs: Sequence[TensorSpec] | None = None) -
     if spec.kind == "npz":
         require_file(spec.paths[0], "an .npz archive")  # never open a pipe or a directory to hash it
     try:
-        content = tree_sha256(list(spec.paths)) if spec.paths else spec.kind
+        content = tree_sha256(list(spec.paths)) if spec.paths else _generator(spec)
     except OSError as exc:
         raise UserError(f"{exc.filename or source(spec)}: cannot be read ({exc.strerror or exc}); "
                         f"every dataset file must be readable") from None
     drawn = specs_to_list(inputs or ()) if spec.kind == "synthetic" else None
     return digest({"spec": {**asdict(spec), "paths": None}, "content": content, "inputs": drawn,
                    "format": FORMAT})
+
+
+def _generator(spec: DatasetSpec) -> str:
+    """What draws data no file holds: the built-in workload's code (its Python files), or the kind's name."""
+    if spec.kind != "builtin":
+        return spec.kind
+    package = module_file("bench_matrix.workload.driving")
+    return tree_sha256(sorted(package.parent.glob("*.py"))) if package else spec.kind
 
 
 def source(spec: DatasetSpec) -> str:
@@ -72,7 +80,8 @@ def prepare(spec: DatasetSpec, workspace: Workspace,
     if (out / "info.json").is_file():
         return out, json.loads((out / "info.json").read_text())
     raw = _read(spec, inputs)
-    _check_preprocess(spec.preprocess, raw, source(spec))
+    ranges = {name: value_range(raw.inputs[name]) for name in raw.images}
+    check_preprocess(spec.preprocess, raw.inputs, ranges, source(spec))
     labels = _labels(raw, spec)
     index = assign_splits(count(raw.inputs), raw.groups, spec.split, spec.seed, source(spec))
     building = out.with_name(f"{out.name}.building-{os.getpid()}")  # this process's, renamed when complete
@@ -85,8 +94,7 @@ def prepare(spec: DatasetSpec, workspace: Workspace,
             np.save(building / split_file(split, LABELS), labels[rows])
     info = {
         "fingerprint": out.name, "format": FORMAT, "kind": spec.kind, "task": spec.task,
-        "inputs": [{"name": name, "shape": list(a.shape[1:]), "dtype": str(a.dtype),
-                    "image": name in raw.images} for name, a in raw.inputs.items()],
+        "inputs": [_input_info(name, a, ranges, spec.preprocess) for name, a in raw.inputs.items()],
         "counts": {k: int(len(v)) for k, v in index.items()},
         "split_by": _split_method(raw.groups, spec.split.by),
         "groups": ({k: sorted({int(g) for g in raw.groups[v]}) for k, v in index.items()}
@@ -96,6 +104,16 @@ def prepare(spec: DatasetSpec, workspace: Workspace,
     (building / "info.json").write_text(json.dumps(info, indent=1))
     _publish(building, out)
     return out, info
+
+
+def _input_info(name: str, array: np.ndarray, ranges: dict[str, tuple[float, float]],
+                preprocess: Preprocess) -> dict[str, Any]:
+    """An input as cached: its name, per-sample shape and dtype; for an image, its values' range and the
+    scale they are multiplied by when loaded."""
+    info = {"name": name, "shape": list(array.shape[1:]), "dtype": str(array.dtype), "image": name in ranges}
+    if name in ranges:
+        info.update(range=list(ranges[name]), scale=pixel_scale(preprocess))
+    return info
 
 
 def _publish(building: Path, out: Path) -> None:
@@ -214,23 +232,6 @@ def _label_info(labels: np.ndarray | None, index: dict[str, np.ndarray], raw: Ra
     mean = train.mean(axis=0)
     return {"label_columns": list(columns), "train_label_mean": mean.tolist(),
             "mean_predictor_mse": float(np.mean((test - mean) ** 2))}
-
-
-def _check_preprocess(preprocess: Preprocess, raw: Raw, where: str) -> None:
-    """Refuse image preprocessing without images, and a per-channel mean or std that fits no image."""
-    if not raw.images:
-        given = [key for key in IMAGE_ONLY if getattr(preprocess, key) is not None]
-        if given:
-            raise UserError(f"dataset.preprocess.{given[0]} applies to images, but {where} has no image "
-                            f"input ((N, H, W, C) arrays, or (N, H, W) uint8); its inputs: "
-                            f"{', '.join(raw.inputs)}")
-    for name in raw.images:
-        channels = raw.inputs[name].shape[-1]
-        for key in ("mean", "std"):
-            values = getattr(preprocess, key)
-            if values is not None and len(values) not in (1, channels):
-                raise UserError(f"dataset.preprocess.{key} has {len(values)} values, but the images of "
-                                f"{where} have {channels} channel(s); give one value or one per channel")
 
 
 def _normalise(labels: np.ndarray, columns: tuple[str, ...], spec: DatasetSpec) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""Image preprocessing as torchvision and Keras applications do it: geometry once, values at load time."""
+"""Image preprocessing as torchvision and Keras applications do it: geometry once, values at load time;
+the checks of dataset.preprocess against the images."""
 
 from __future__ import annotations
 
@@ -8,6 +9,9 @@ from bench_matrix.errors import UserError
 from bench_matrix.matrix.spec import Preprocess
 
 CROP_SIDES = ("top", "bottom", "left", "right")
+GEOMETRIC = ("crop", "resize", "resize_shorter", "center_crop")
+IMAGE_ONLY = (*GEOMETRIC, "mean", "std")
+DEFAULT_SCALE = 1.0 / 255.0  # when dataset.preprocess.scale is not given: pixels 0..255 to [0, 1]
 
 
 def geometric(image: np.ndarray, preprocess: Preprocess) -> np.ndarray:
@@ -46,9 +50,58 @@ def shorter_side_size(size: tuple[int, ...], shorter: int) -> tuple[int, int]:
     return int(shorter * h / w), shorter
 
 
+def pixel_scale(preprocess: Preprocess) -> float:
+    """What image values are multiplied by: dataset.preprocess.scale as given, else 1/255."""
+    return DEFAULT_SCALE if preprocess.scale is None else preprocess.scale
+
+
+def value_range(images: np.ndarray) -> tuple[float, float]:
+    """The smallest and the largest value of an image array."""
+    return float(images.min()), float(images.max())
+
+
+def check_preprocess(preprocess: Preprocess, inputs: dict[str, np.ndarray],
+                     ranges: dict[str, tuple[float, float]], where: str) -> None:
+    """Refuse image preprocessing without images (the inputs `ranges` names), a mean or std that fits no
+    image's channels, and the default scale for images that are not pixels 0..255."""
+    if not ranges:
+        given = [key for key in IMAGE_ONLY if getattr(preprocess, key) is not None]
+        if given:
+            raise UserError(f"dataset.preprocess.{given[0]} applies to images, but {where} has no image "
+                            f"input ((N, H, W, C) arrays, or (N, H, W) uint8); its inputs: "
+                            f"{', '.join(inputs)}")
+    for name, span in ranges.items():
+        channels = inputs[name].shape[-1]
+        for key in ("mean", "std"):
+            values = getattr(preprocess, key)
+            if values is not None and len(values) not in (1, channels):
+                raise UserError(f"dataset.preprocess.{key} has {len(values)} values, but the images of "
+                                f"{where} have {channels} channel(s); give one value or one per channel")
+        if preprocess.scale is None:
+            _check_default_scale(name, inputs[name].dtype, span, where)
+
+
+def _check_default_scale(name: str, dtype: np.dtype, span: tuple[float, float], where: str) -> None:
+    """Refuse images the default scale (1/255) does not fit: negative values, values beyond 255, and
+    floats (or booleans) already within [0, 1]; each needs dataset.preprocess.scale given."""
+    low, high = span
+    if low < 0:
+        why = "negative values: already scaled or standardised"
+    elif high > 255:
+        why = "values beyond 255: not 8-bit pixels"
+    elif 0 < high <= 1 and dtype.kind not in "ui":
+        why = "already in [0, 1]"
+    else:
+        return
+    raise UserError(f"{where}: input '{name}' holds {dtype} images with values {low:.4g} to {high:.4g} "
+                    f"({why}), which the default scale (1/255, for pixels 0 to 255) would distort; set "
+                    f"dataset.preprocess.scale to the factor the model's inputs need (1.0 uses the values "
+                    f"as they are)")
+
+
 def to_model_input(images: np.ndarray, preprocess: Preprocess, layout: str) -> np.ndarray:
     """Scale and normalise (N,H,W,C) images per channel, then lay them out as the model expects."""
-    x = images.astype(np.float32) * np.float32(preprocess.scale)
+    x = images.astype(np.float32) * np.float32(pixel_scale(preprocess))
     if preprocess.mean is not None:
         x = (x - np.asarray(preprocess.mean, np.float32)) / np.asarray(preprocess.std, np.float32)
     if layout == "nchw":

@@ -20,6 +20,8 @@ from bench_matrix.matrix.expand import Verdict, combinations, plan, training_key
 from bench_matrix.matrix.spec import DatasetSpec, Matrix, ModelSpec
 from bench_matrix.matrix.yamlpos import format_path
 from bench_matrix.measure import env as environment
+from bench_matrix.sources.forward_call import Parameter, call_problem
+from bench_matrix.sources.code import model_code
 from bench_matrix.tensors import TensorSpec, binding_problem, specs_from_list
 from bench_matrix.workspace import Workspace, digest, file_sha256, tree_sha256
 
@@ -63,7 +65,9 @@ def resolve(matrix: Matrix, workspace: Workspace) -> Plan:
     files = tuple(sorted({(m.framework, m.source_format, str(m.file)) for m in matrix.models
                           if m.file is not None and not m.inputs}))
     names = tuple(sorted(set(installed) | {k[0] for k in keys}))
-    outcome = run_job(ProbeJob(workspace, names, keys, training, files), workspace.jobs,
+    factories = tuple(sorted({(m.factory, tuple(map(str, m.python_path))) for m in matrix.models
+                              if m.factory and _several_inputs(matrix, m)}))
+    outcome = run_job(ProbeJob(workspace, names, keys, training, files, factories), workspace.jobs,
                       workspace.log("probe"), PROBE_TIMEOUT_S)
     if not outcome.ok:
         raise UserError(f"probing the installed backends failed: {outcome.error}")
@@ -73,7 +77,7 @@ def resolve(matrix: Matrix, workspace: Workspace) -> Plan:
     baselines = {f: n for n, b in sorted(probed["backends"].items()) for f in b.get("baseline_for", [])}
     expansion = plan(matrix, cells, excluded, verdicts, trainers, baselines)
     models = {m.name: _model_plan(matrix, m, probed["inputs"], baselines, workspace) for m in matrix.models}
-    _check_models(matrix, models)
+    _check_models(matrix, models, probed["forwards"])
     prints = Fingerprints(matrix, probed["backends"])
     driven = (replace(p, log=workspace.cell_log(p.cell.key), closed_loop=closed_loop_plan(matrix, p.cell))
               for p in expansion.cells)
@@ -115,8 +119,14 @@ def relative(matrix: Matrix, path: Path) -> str:
     return str(path.relative_to(base)) if path.is_relative_to(base) else str(path)
 
 
-def _check_models(matrix: Matrix, models: dict[str, ModelPlan]) -> None:
-    """Inputs the data cannot feed, synthetic data for a model whose inputs nobody declared: exit 2, located."""
+def _several_inputs(matrix: Matrix, model: ModelSpec) -> bool:
+    """Whether the model has several inputs: declared, or the dataset's arrays."""
+    return len(model.inputs or data.describe(matrix.dataset_of(model), model.layout) or ()) > 1
+
+
+def _check_models(matrix: Matrix, models: dict[str, ModelPlan], forwards: dict[str, Any]) -> None:
+    """Inputs the data cannot feed or a factory's forward cannot take, synthetic data for a model whose inputs
+    nobody declared: exit 2, located."""
     problems = []
     for i, m in enumerate(matrix.models):
         planned = models[m.name]
@@ -127,13 +137,23 @@ def _check_models(matrix: Matrix, models: dict[str, ModelPlan]) -> None:
                                  f"them under models[{i}].inputs (name, shape, dtype)"))
             continue
         described = data.describe(planned.dataset, m.layout)
-        if planned.inputs is None or described is None:
-            continue
-        if problem := binding_problem(described, planned.inputs):
+        names = [spec.name for spec in planned.inputs] if planned.inputs else list(described or ())
+        problem = _forward_problem(m, names, forwards)
+        if planned.inputs is not None and described is not None:
+            problem = binding_problem(described, planned.inputs) or problem
+        if problem:
             problems.append((at + ("inputs",) if m.inputs else at, f"model {m.name}: {problem}"))
     if problems:
         raise MatrixError([f"{matrix.path}:{_line(matrix, at)}: {format_path(at)}: {message}"
                            for at, message in problems])
+
+
+def _forward_problem(model: ModelSpec, names: list[str], forwards: dict[str, Any]) -> str | None:
+    """Why the factory's forward (its parameters as the probe read them) cannot take these inputs, or None."""
+    params = forwards.get(model.factory or "")
+    if not params or not names:
+        return None
+    return call_problem(model.factory or "", [Parameter(**p) for p in params], names, bool(model.inputs))
 
 
 def _line(matrix: Matrix, at: tuple) -> int:
@@ -168,7 +188,8 @@ class Fingerprints:
         portable = asdict(model)
         portable.update(file=None, weights=None, dataset=None,
                         python_path=[relative(self.matrix, p) for p in model.python_path],
-                        files=[self._hash(p) for p in (model.file, model.weights) if p is not None])
+                        files=[self._hash(p) for p in (model.file, model.weights) if p is not None],
+                        code=model_code(model))
         return portable
 
     def dataset(self, spec: DatasetSpec) -> dict[str, Any]:

@@ -81,6 +81,15 @@ def _disturbed(metrics: dict) -> str:
     return f"  [yellow]~ disturbed{f': {escape(reason)}' if reason else ''}[/]"
 
 
+def _calibration(metrics: dict) -> str:
+    """A warning for a cell calibrated on fewer samples than its strategy asked for."""
+    calibration = metrics.get("calibration") or {}
+    if calibration.get("used", 0) >= calibration.get("asked", 0):
+        return ""
+    return (f"  [yellow]! calibrated on {calibration['used']} of the {calibration['asked']} samples asked for: "
+            f"the calibration split has no more (enlarge dataset.split.calibration)[/]")
+
+
 def describe(record: CellRecord) -> str:
     """One line: status mark, cell, and its headline numbers or reason."""
     cell: Cell = record.cell
@@ -92,7 +101,7 @@ def describe(record: CellRecord) -> str:
         latency = m["latency_ms"]
         return (f"[green]✓[/] {name}  p50 {latency['p50']:.3g} ms  p99 {latency['p99']:.3g} ms"
                 f"  {m['throughput_sps']:.0f} samples/s  {_accuracy(m)}  {m['size_bytes'] / 2**20:.2f} MiB"
-                f"{per_pass}{_disturbed(m)}")
+                f"{per_pass}{_disturbed(m)}{_calibration(m)}")
     lines = (record.reason or "").strip().splitlines()
     mark = "[yellow]–[/] skipped" if record.status == "skipped" else "[red]✗[/] failed"
     return f"{mark} {escape(name)}: {escape(lines[0] if lines else '')}"

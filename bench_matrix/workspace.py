@@ -48,9 +48,9 @@ class Workspace:
     def finetuned(self, fingerprint: str) -> Path:
         return self.root / "cache" / "finetuned" / fingerprint
 
-    def params(self, sha256: str) -> Path:
-        """The parameter count of a source model, by its content hash."""
-        return self.root / "cache" / "params" / f"{sha256}.json"
+    def params(self, fingerprint: str) -> Path:
+        """The parameter count of a source model."""
+        return self.root / "cache" / "params" / f"{fingerprint}.json"
 
     @property
     def logs(self) -> Path:

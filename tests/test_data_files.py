@@ -343,7 +343,8 @@ def test_preprocessing_that_does_not_fit_the_images(tmp_path):
     refused(lambda: prepare(tmp_path, path, preprocess=Preprocess(crop=(20, 30, None, None))),
             "dataset.preprocess.crop {top: 20, bottom: 30} leaves no pixels of a 8×8 image")
     directory, info = prepare(tmp_path, path, preprocess=Preprocess(resize=(4, 6)))  # grayscale resized
-    assert info["inputs"] == [{"name": "x", "shape": [4, 6, 1], "dtype": "uint8", "image": True}]
+    assert info["inputs"] == [{"name": "x", "shape": [4, 6, 1], "dtype": "uint8", "image": True,
+                               "range": [0.0, 0.0], "scale": 1 / 255}]
     assert np.load(directory / "test__x.npy").dtype == np.uint8
 
 
@@ -374,6 +375,14 @@ def test_cli_truncated_npz_and_nan_labels_exit_2(tiny_project):
     np.savez(tiny_project / "nan.npz", **arrays)
     code, err = run_with_dataset(tiny_project, "npz: nan.npz")
     assert code == 2 and f"{tiny_project / 'nan.npz'}: array 'y': sample 40 holds NaN or Inf" in err
+
+
+def test_cli_float_images_already_in_0_1_exit_2_without_a_scale(tiny_project):
+    arrays = dict(np.load(tiny_project / "data.npz"))
+    np.savez(tiny_project / "unit.npz", x=arrays["x"] / np.float32(255), y=arrays["y"])
+    code, err = run_with_dataset(tiny_project, "npz: unit.npz")
+    assert code == 2 and (f"{tiny_project / 'unit.npz'}: input 'x' holds float32 images with values 0 to 1 "
+                          f"(already in [0, 1])") in err and "set dataset.preprocess.scale" in err
 
 
 def test_cli_folder_with_a_corrupt_image_exits_2(tiny_project):

@@ -89,7 +89,7 @@ def test_layout_and_normalisation_apply_to_images_only(tmp_path):
     pre = Preprocess(scale=1 / 255, mean=(0.5,), std=(0.25,))
     spec = DatasetSpec(kind="npz", paths=spec.paths, split=SPLIT, preprocess=pre)
     directory, info = prepare(tmp_path, spec)
-    assert [i["image"] for i in info["inputs"]] == [True, True, False]
+    assert [i["image"] for i in info["inputs"]] == [True, True, False] and "scale" not in info["inputs"][2]
     inputs, labels = data.load_split(directory, "train", pre, "nchw")
     expected = (images[:10].astype(np.float32) / 255 - 0.5) / 0.25
     np.testing.assert_allclose(inputs["x"], expected.transpose(0, 3, 1, 2), atol=1e-6)
@@ -139,7 +139,8 @@ def test_image_class_folders_resize_the_shorter_side_and_crop_the_centre(tmp_pat
                        split=SplitSpec(train=0.34, calibration=0.33, test=0.33, by="random"))
     directory, info = prepare(tmp_path, spec)
     assert info["classes"] == ["bird", "cat", "dog"] and sum(info["counts"].values()) == 9
-    assert info["inputs"] == [{"name": "x", "shape": [20, 20, 3], "dtype": "uint8", "image": True}]
+    assert info["inputs"] == [{"name": "x", "shape": [20, 20, 3], "dtype": "uint8", "image": True,
+                               "range": [0.0, 255.0], "scale": 1.0}]
     for split in ("train", "calibration", "test"):
         inputs, labels = data.load_split(directory, split, pre, "nhwc")
         assert labels.dtype == np.int64 and set(labels.tolist()) <= {0, 1, 2}
@@ -188,6 +189,8 @@ def test_builtin_driving_bends_has_five_bend_classes(tmp_path):
     assert info["split_by"] == "group" and 0 <= info["majority_top1"] <= 1
     inputs, labels = data.load_split(directory, "test", spec.preprocess, "nchw")
     assert inputs["x"].shape[1:] == (3, 33, 100) and labels.dtype == np.int64 and labels.max() <= 4
+    stored = np.load(directory / "test__x.npy").transpose(0, 3, 1, 2)  # uint8 pixels, divided by 255 as ever
+    assert info["inputs"][0]["scale"] == 1 / 255 and np.array_equal(inputs["x"], stored * np.float32(1 / 255))
     assert data.describe(spec, "nchw") == {"x": TensorSpec("x", (3, 33, 100), "float32")}
     wrong = DatasetSpec(kind="builtin", builtin="driving", task="classification", samples=60, circuits=3)
     refused(lambda: prepare(tmp_path, wrong), "labelled for regression", "use builtin: driving_bends")
@@ -204,3 +207,57 @@ def test_odd_input_names_are_cached_and_fingerprints_ignore_where_files_lie(tmp_
     moved = DatasetSpec(kind="npz", paths=(spec.paths[0].rename(tmp_path / "moved" / "d.npz"),), task="none",
                         split=SPLIT)
     assert data.fingerprint(moved) == before == directory.name
+
+
+# the default scale, 1/255, is for pixels 0..255 only
+
+
+def images_spec(tmp_path: Path, x: np.ndarray, preprocess: Preprocess = Preprocess()) -> DatasetSpec:
+    spec = npz_spec(tmp_path, "none", x=x)
+    return DatasetSpec(kind="npz", paths=spec.paths, task="none", split=SPLIT, preprocess=preprocess)
+
+
+def train_images(tmp_path: Path, spec: DatasetSpec) -> tuple[np.ndarray, dict]:
+    directory, info = prepare(tmp_path, spec)
+    return data.load_split(directory, "train", spec.preprocess, "nhwc")[0]["x"], info["inputs"][0]
+
+
+RNG = np.random.default_rng(5)
+UNIT = RNG.random((8, 4, 4, 3)).astype(np.float32)  # float images already in [0, 1]
+PIXELS = {"uint8": RNG.integers(0, 256, (8, 4, 4, 3)).astype(np.uint8),
+          "int64": RNG.integers(0, 256, (8, 4, 4, 3)), "float32 0..255": UNIT * 255}
+SCALED = {"float32 [0, 1]": (UNIT, "already in [0, 1]"),
+          "float32 [-1, 1]": (UNIT * 2 - 1, "negative values"),
+          "float64 standardised": ((UNIT.astype(np.float64) - 0.5) / 0.29, "negative values"),
+          "uint16": ((UNIT * 4095).astype(np.uint16), "beyond 255"),
+          "bool": (UNIT > 0.5, "already in [0, 1]")}
+
+
+@pytest.mark.parametrize("images", PIXELS.values(), ids=PIXELS)
+def test_the_default_scale_divides_pixels_0_to_255(tmp_path, images):
+    x, info = train_images(tmp_path, images_spec(tmp_path, images))
+    np.testing.assert_allclose(x, images[:4].astype(np.float32) / 255, rtol=1e-6)
+    assert info["scale"] == pytest.approx(1 / 255)
+    assert info["range"] == [float(images.min()), float(images.max())]
+
+
+@pytest.mark.parametrize("images, why", SCALED.values(), ids=SCALED)
+def test_images_outside_0_to_255_need_a_scale_given(tmp_path, images, why):
+    spec = images_spec(tmp_path, images)
+    low, high = float(images.min()), float(images.max())
+    refused(lambda: prepare(tmp_path, spec), f"{spec.paths[0]}: input 'x' holds {images.dtype} images",
+            f"values {low:.4g} to {high:.4g}", why, "set dataset.preprocess.scale")
+    assert not (tmp_path / "ws" / "cache" / "datasets").exists()  # nothing cached
+    x, info = train_images(tmp_path, images_spec(tmp_path, images, Preprocess(scale=1.0)))
+    np.testing.assert_array_equal(x, images[:4].astype(np.float32))
+    assert info["scale"] == 1.0 and info["range"] == [low, high]
+
+
+def test_a_scale_given_is_honoured_whatever_the_values(tmp_path):
+    pixels = PIXELS["uint8"]
+    x, _ = train_images(tmp_path, images_spec(tmp_path, pixels, Preprocess(scale=1.0)))
+    np.testing.assert_array_equal(x, pixels[:4].astype(np.float32))  # uint8 kept 0..255 when asked
+    given = Preprocess(scale=1 / 255, mean=(0.5,), std=(0.25,))  # 1/255 given, on [0, 1] data: as asked
+    x, info = train_images(tmp_path, images_spec(tmp_path, UNIT, given))
+    np.testing.assert_allclose(x, (UNIT[:4] / 255 - 0.5) / 0.25, rtol=1e-6)
+    assert info["scale"] == pytest.approx(1 / 255)

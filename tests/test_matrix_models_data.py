@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from bench_matrix.data import fingerprint
 from bench_matrix.errors import MatrixError
 from bench_matrix.matrix import load_matrix
 from bench_matrix.tensors import TensorSpec
@@ -69,6 +70,14 @@ def test_image_folders_with_torchvision_preprocessing(project):
 def test_each_dataset_has_its_default_task(project, dataset, task):
     data = load_matrix(write(project, matrix(ONNX, dataset))).dataset
     assert data.task == task and data.circuits == 20  # the documented default, whatever the kind
+
+
+def test_a_scale_given_is_told_from_the_default_and_keys_the_cache(project):
+    default = load_matrix(write(project, matrix(ONNX, "{npz: data.npz}"))).dataset
+    text = matrix(ONNX, "{npz: data.npz, preprocess: {scale: 0.00392156862745098}}")
+    given = load_matrix(write(project, text)).dataset
+    assert default.preprocess.scale is None and given.preprocess.scale == pytest.approx(1 / 255)
+    assert fingerprint(default) != fingerprint(given)  # 1/255 given is no default: cached apart
 
 
 def test_synthetic_inputs_of_declared_shapes_dtypes_and_ranges(project):

@@ -38,3 +38,10 @@ def test_a_waiting_phase_shows_its_holder_verbatim():
         progress.step("tiny · onnxruntime none fp32")
         progress.phase("waiting for the timing phase of pid 12 of user a ([bold]x · tiny, since 17:50:02)")
     assert "[bold]x · tiny, since 17:50:02)" in out.getvalue()
+
+
+def test_a_cell_calibrated_on_fewer_samples_than_asked_says_so():
+    short = line({**METRICS, "calibration": {"asked": 100, "used": 40}})
+    assert "! calibrated on 40 of the 100 samples asked for" in short
+    assert "calibrated" not in line({**METRICS, "calibration": {"asked": 100, "used": 100}})
+    assert "calibrated" not in line(METRICS)  # no calibration, or stored before it was recorded

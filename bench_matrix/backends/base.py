@@ -91,6 +91,7 @@ class Backend(ABC):
     # (validated with the matrix; defaults are the backend's to apply). Targets and precisions beyond the
     # built-in ones are declared simply by naming them in `supports`.
     options: ClassVar[dict[str, Any]] = {}
+    revision: ClassVar[int] = 1  # raise it when the conversion changes: cached artifacts are then redone
 
     def versions(self) -> dict[str, str]:
         """Versions of the libraries this backend uses (in the artifact cache key and in each record's `env`)."""

@@ -34,13 +34,15 @@ class Job:
 
 @dataclass(frozen=True)
 class ProbeJob(Job):
-    """Describe backends, judge combinations and fine-tunings, read the inputs model files declare."""
+    """Describe backends, judge combinations and fine-tunings, read the inputs model files declare and the
+    parameters of factories' forward."""
 
     mode = "bench_matrix.jobs.probe:probe"
     backends: tuple[str, ...]
     keys: tuple[VerdictKey, ...] | None = None  # None: every combination the backends declare
     training: tuple[TrainingKey, ...] = ()
     model_files: tuple[tuple[str, str, str], ...] = ()  # (framework, source format, path) of user model files
+    factories: tuple[tuple[str, tuple[str, ...]], ...] = ()  # (factory, python_path) whose forward to read
 
 
 @dataclass(frozen=True)

@@ -12,28 +12,21 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix import data, hardware
+from bench_matrix import data
 from bench_matrix.backends.base import Backend, ConvertRequest, Session
-from bench_matrix.matrix.schema import STRATEGY_KINDS
+from bench_matrix.jobs.keys import artifact_key, calibrates, intermediates_key, params_key
 from bench_matrix.matrix.spec import Settings, StrategySpec
 from bench_matrix.sources import SourceModel
 from bench_matrix.tensors import Inputs, bind, count, take
-from bench_matrix.workspace import Workspace, digest
+from bench_matrix.workspace import Workspace
 
 
 def ensure_artifact(ws: Workspace, backend: Backend, source: SourceModel, step: StrategySpec, precision: str,
                     target: str, prepared: Any, layout: str, settings: Settings,
                     options: dict[str, Any]) -> tuple[Path, dict[str, Any], bool]:
-    """Convert once per content hash (source, step, options, libraries, calibration data); reuse after."""
-    calibrated = "calibration_samples" in STRATEGY_KINDS.get(step.kind or "none", {}).get("options", {})
-    # A TensorRT engine covers batches up to max_batch and runs only on the GPU model it was built for.
-    engine = ({"max_batch": settings.batch_size, "gpu": [(g.name, g.capability) for g in hardware.gpus()[:1]]}
-              if target == "tensorrt" else {})
-    key = digest({"source": source.sha256, "inputs": [i.to_dict() for i in source.inputs],
-                  "backend": backend.name, "versions": backend.versions(), "step": step.to_dict(),
-                  "precision": precision, "target": target, "options": options,
-                  "calibration": [prepared.info["fingerprint"], layout] if calibrated else None,
-                  "seed": settings.seed, **engine})
+    """Convert once per content (keys.artifact_key); reuse after."""
+    key = artifact_key(backend, source, step, precision, target, [prepared.info["fingerprint"], layout],
+                       settings, options)
     final = ws.artifact(backend.name, key)
     if (final / "manifest.json").is_file():
         return final, json.loads((final / "manifest.json").read_text()), True
@@ -41,12 +34,14 @@ def ensure_artifact(ws: Workspace, backend: Backend, source: SourceModel, step: 
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "model").mkdir(parents=True)
 
+    reads: list[tuple[int, int]] = []  # (asked, given) of each read of the calibration split
+
     def calibration(n: int) -> Inputs:
         x, _ = data.load_split(prepared.directory, "calibration", prepared.preprocess, layout, n)
+        reads.append((n, count(x)))
         return bind(x, source.inputs)
 
-    shared = ws.intermediates(backend.name, digest({"source": source.sha256, "versions": backend.versions(),
-                                                    "seed": settings.seed}))
+    shared = ws.intermediates(backend.name, intermediates_key(backend, source, settings.seed))
     shared.mkdir(parents=True, exist_ok=True)
     request = ConvertRequest(source=source, step=step, precision=precision, target=target, out_dir=tmp / "model",
                              calibration=calibration, threads=settings.threads, seed=settings.seed,
@@ -60,13 +55,22 @@ def ensure_artifact(ws: Workspace, backend: Backend, source: SourceModel, step: 
     manifest = {"meta": meta, "convert_s": time.perf_counter() - begin, "params": _params(ws, source),
                 "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                 "versions": backend.versions(), "source_sha256": source.sha256, "step": step.to_dict(),
-                "precision": precision, "target": target, "options": options}
+                "precision": precision, "target": target, "options": options,
+                "calibration": _calibration(reads) if calibrates(step) else None}
     (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1, default=str))
     try:
         tmp.rename(final)
     except OSError:  # another process finished the same artifact first: keep theirs
         shutil.rmtree(tmp, ignore_errors=True)
     return final, json.loads((final / "manifest.json").read_text()), False
+
+
+def _calibration(reads: list[tuple[int, int]]) -> dict[str, int] | None:
+    """How many calibration samples the conversion asked for at most, and how many the split gave it."""
+    if not reads:
+        return None
+    asked, used = max(reads)
+    return {"asked": asked, "used": used}
 
 
 def predict_all(session: Session, inputs: Inputs, batch_size: int) -> list[np.ndarray]:
@@ -77,8 +81,8 @@ def predict_all(session: Session, inputs: Inputs, batch_size: int) -> list[np.nd
 
 
 def _params(ws: Workspace, source: SourceModel) -> int:
-    """The source's parameter count, counted once per content hash (counting loads the model)."""
-    kept = ws.params(source.sha256)
+    """The source's parameter count, counted once per source (counting loads the model)."""
+    kept = ws.params(params_key(source))
     if kept.is_file():
         return int(json.loads(kept.read_text()))
     params = _count_params(source)

@@ -95,6 +95,8 @@ def measure(job: MeasureJob) -> dict[str, Any]:
                "threads": settings.threads, "artifact_cached": job.cached, "session": session.info(),
                "test_samples": int(len(outputs[0])),
                **_finetune_metrics(job.finetune, job.manifest["convert_s"])}
+    if job.manifest.get("calibration"):  # how many calibration samples were asked for and used
+        metrics["calibration"] = job.manifest["calibration"]
     if job.closed_loop is not None:  # laps with this session, after every timed loop (docs/closed-loop.md)
         metrics.update(drive_all(session, job))
     env = {**environment.capture(), "backend_versions": backend.versions(), "runtime": session.info()}

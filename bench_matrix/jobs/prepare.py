@@ -17,13 +17,15 @@ from bench_matrix.cell import NO_STEP
 from bench_matrix.errors import UserError
 from bench_matrix.jobs import DatasetJob, FinetuneJob, ModelJob
 from bench_matrix.jobs.artifact import ensure_artifact, predict_all
+from bench_matrix.jobs.keys import builtin_key, finetune_key, model_key
 from bench_matrix.matrix.spec import ModelSpec
 from bench_matrix.measure import env as environment
 from bench_matrix.measure.metrics import evaluate, non_finite_reason
 from bench_matrix.sources import SourceModel
+from bench_matrix.sources.code import model_code
 from bench_matrix.tensors import TensorSpec, binding_problem, bind, take
 from bench_matrix.worker import phase
-from bench_matrix.workspace import Workspace, digest, file_sha256
+from bench_matrix.workspace import Workspace, file_sha256
 
 
 def prepare_dataset(job: DatasetJob) -> dict[str, Any]:
@@ -41,9 +43,8 @@ def prepare_model(job: ModelJob) -> dict[str, Any]:
     """Materialise the source model (training built-ins), check it, and compute the fp32 reference outputs."""
     spec, ws, settings, prepared = job.model, job.workspace, job.settings, job.data
     inputs = job.inputs or data.data_inputs(prepared.info, spec.layout)
-    key = digest({"model": _identity(spec), "inputs": [i.to_dict() for i in inputs], "task": job.task,
-                  "dataset": prepared.info["fingerprint"], "seed": settings.seed, "eval": settings.eval_samples,
-                  "format": 2, "baseline": [job.baseline.backend, environment.library_versions()]})
+    key = model_key(spec, inputs, model_code(spec), job.task, prepared.info["fingerprint"], settings,
+                    [job.baseline.backend, environment.library_versions()])
     out = ws.models(key)
     if (out / "prepared.json").is_file():  # paths are derived afresh: the workspace may be named otherwise now
         source, _ = _source(spec, ws, prepared, settings.seed, inputs)
@@ -113,9 +114,8 @@ def finetune(job: FinetuneJob) -> dict[str, Any]:
     from bench_matrix.strategies.registry import load_trainer
 
     ws, source, trainer = job.workspace, job.source, load_trainer(job.trainer)
-    key = digest({"source": source.sha256, "trainer": trainer.name, "revision": trainer.revision,
-                  "versions": trainer.versions(), "steps": [s.to_dict() for s in job.steps], "task": job.task,
-                  "dataset": job.data.info["fingerprint"], "layout": job.layout, "seed": job.seed})
+    key = finetune_key(trainer, source, job.steps, job.task, [job.data.info["fingerprint"], job.layout],
+                       job.seed)
     final = ws.finetuned(key)
     if not (final / "finetuned.json").is_file():
         phase("finetune")
@@ -145,15 +145,9 @@ def finetune(job: FinetuneJob) -> dict[str, Any]:
     path = final / "model" / done["file"]
     tuned = SourceModel(name=source.name, framework=source.framework, format=done["format"], path=path,
                         sha256=file_sha256(path), inputs=source.inputs, factory=source.factory,
-                        python_path=source.python_path, origin=source.origin or str(source.path))
+                        python_path=source.python_path, origin=source.origin or str(source.path),
+                        code_sha256=source.code_sha256)
     return {"source": tuned.to_dict(), "facts": done["facts"]}
-
-
-def _identity(spec: ModelSpec) -> dict[str, Any]:
-    """What makes a model this model, without where its files lie: its declaration and its files' contents."""
-    return {"name": spec.name, "framework": spec.framework, "builtin": spec.builtin, "factory": spec.factory,
-            "layout": spec.layout, "training": spec.training, "format": spec.source_format,
-            "files": [file_sha256(p) for p in (spec.file, spec.weights) if p is not None]}
 
 
 def _source(spec: ModelSpec, ws: Workspace, prepared: Any, seed: int,
@@ -165,7 +159,8 @@ def _source(spec: ModelSpec, ws: Workspace, prepared: Any, seed: int,
                            inputs), None
     assert spec.weights is not None and spec.factory is not None
     return (SourceModel(spec.name, "pytorch", "state_dict", spec.weights, file_sha256(spec.weights), inputs,
-                        factory=spec.factory, python_path=tuple(str(p) for p in spec.python_path)), None)
+                        factory=spec.factory, python_path=tuple(str(p) for p in spec.python_path),
+                        code_sha256=model_code(spec)), None)
 
 
 def _trained_builtin(spec: ModelSpec, ws: Workspace, prepared: Any, seed: int,
@@ -173,8 +168,7 @@ def _trained_builtin(spec: ModelSpec, ws: Workspace, prepared: Any, seed: int,
     """The built-in model of spec.framework, trained on the training split once and cached by content."""
     from bench_matrix.workload.pilotnet_torch import FACTORIES
 
-    key = digest({"builtin": spec.builtin, "framework": spec.framework, "training": spec.training,
-                  "dataset": prepared.info["fingerprint"], "seed": seed, "layout": spec.layout})
+    key = builtin_key(spec, model_code(spec), prepared.info["fingerprint"], seed, environment.library_versions())
     keras = spec.framework == "tensorflow"
     model_file = ws.models(key) / ("model.keras" if keras else "model.pt")
     facts_file = model_file.with_name("training.json")
@@ -192,4 +186,4 @@ def _trained_builtin(spec: ModelSpec, ws: Workspace, prepared: Any, seed: int,
     if keras:
         return SourceModel(spec.name, "tensorflow", "keras", model_file, file_sha256(model_file), inputs), facts
     return (SourceModel(spec.name, "pytorch", "state_dict", model_file, file_sha256(model_file), inputs,
-                        factory=FACTORIES[spec.builtin]), facts)
+                        factory=FACTORIES[spec.builtin], code_sha256=model_code(spec)), facts)

@@ -1,8 +1,10 @@
-"""The probe job: describe each backend, judge every combination and fine-tuning, read model files' inputs."""
+"""The probe job: describe each backend, judge every combination and fine-tuning, read model files' inputs
+and the parameters of factories' forward."""
 
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -17,13 +19,15 @@ DEFAULT_FORMAT = {"pytorch": "state_dict", "tensorflow": "keras"}  # what built-
 
 
 def probe(job: ProbeJob) -> dict[str, Any]:
-    """Backends described, verdicts per combination, trainers per fine-tuning, inputs per model file."""
+    """Backends described, verdicts per combination, trainers per fine-tuning, inputs per model file,
+    forward's parameters per factory."""
     backends, described = _load(job.backends)
     keys = job.keys if job.keys is not None else _declared(backends)
     trainers = judge_training(job.training)
     verdicts = {json.dumps(key): _verdict(backends, described, _converted(key, trainers)) for key in keys}
     return {"backends": described, "verdicts": verdicts, "trainers": trainers,
-            "inputs": {path: _inputs(framework, fmt, path) for framework, fmt, path in job.model_files}}
+            "inputs": {path: _inputs(framework, fmt, path) for framework, fmt, path in job.model_files},
+            "forwards": {factory: _forward(factory, path) for factory, path in job.factories}}
 
 
 def _load(names: tuple[str, ...]) -> tuple[dict[str, Backend | None], dict[str, Any]]:
@@ -114,3 +118,14 @@ def _inputs(framework: str, source_format: str, path: str) -> dict[str, Any]:
     except Exception as exc:  # a file we cannot read is the model's failure, reported when it is prepared
         return {"error": f"{path}: cannot read its inputs: {type(exc).__name__}: {exc}"}
     return {"inputs": None if found is None else specs_to_list(found)}
+
+
+def _forward(factory: str, python_path: tuple[str, ...]) -> list[dict[str, Any]] | None:
+    """The parameters of forward of the module the factory builds; None when it cannot be built."""
+    from bench_matrix.sources.forward_call import forward_parameters
+    from bench_matrix.sources.pytorch import build_from_factory
+
+    try:
+        return [asdict(p) for p in forward_parameters(build_from_factory(factory, python_path))]
+    except Exception:  # the model's failure (torch missing included), reported when the model is prepared
+        return None

@@ -157,7 +157,7 @@ def _preprocess(pre: dict[str, Any], at: tuple, report: Located) -> Preprocess:
         report.add(at + ("center_crop",), f"{list(centre)} does not fit in an image whose shorter side is "
                                           f"{shorter} (resize_shorter)")
     return Preprocess(crop=(crop.get("top"), crop.get("bottom"), crop.get("left"), crop.get("right"))
-                      if crop else None, resize=resize, scale=pre.get("scale", Preprocess.scale), mean=mean,
+                      if crop else None, resize=resize, scale=pre.get("scale"), mean=mean,
                       std=std, resize_shorter=shorter, center_crop=centre)
 
 

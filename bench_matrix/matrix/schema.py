@@ -180,7 +180,9 @@ DATASET: dict[str, Any] = {
             "resize_shorter": {**_SIDE, "description": "resize so the shorter side has this length"},
             "center_crop": {"type": "array", "items": _SIDE, "minItems": 2, "maxItems": 2,
                             "description": "[height, width] cut from the centre, after resizing"},
-            "scale": {"type": "number", "exclusiveMinimum": 0, "maximum": 1e6},
+            "scale": {"type": "number", "exclusiveMinimum": 0, "maximum": 1e6,
+                      "description": "image values are multiplied by it; not given: 1/255, for pixels 0 to "
+                                     "255 only (other images need it given)"},
             "mean": {"type": "array", "items": {"type": "number", "minimum": -1e6, "maximum": 1e6},
                      "minItems": 1},
             "std": {"type": "array", "items": {"type": "number", "minimum": 1e-6, "maximum": 1e6},

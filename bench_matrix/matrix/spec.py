@@ -65,7 +65,7 @@ class Preprocess:
 
     crop: tuple[int | None, int | None, int | None, int | None] | None = None  # top, bottom, left, right
     resize: tuple[int, int] | None = None  # height, width
-    scale: float = 1.0 / 255.0
+    scale: float | None = None  # None: 1/255, for pixels 0..255 (data.py refuses other images then)
     mean: tuple[float, ...] | None = None
     std: tuple[float, ...] | None = None
     resize_shorter: int | None = None  # resize so the shorter side has this length (aspect ratio kept) ...

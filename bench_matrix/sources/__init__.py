@@ -31,6 +31,12 @@ class SourceModel:
     factory: str | None = None  # 'module:function' building the module a state_dict belongs to
     python_path: tuple[str, ...] = ()
     origin: str | None = None  # the user's file this is a fine-tuned copy of; None: `path` is the user's
+    code_sha256: str | None = None  # SHA-256 of the factory's module file (sources.code.factory_sha256)
+
+    def identity(self) -> dict[str, Any]:
+        """Everything that decides what this source computes, wherever its files lie: the cache keys' part."""
+        return {"sha256": self.sha256, "framework": self.framework, "format": self.format,
+                "inputs": specs_to_list(self.inputs), "factory": self.factory, "code": self.code_sha256}
 
     @property
     def input_shape(self) -> tuple[int, ...]:

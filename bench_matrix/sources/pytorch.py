@@ -11,6 +11,7 @@ from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
 from bench_matrix.sources import ModelFileError
+from bench_matrix.sources.forward_call import for_inputs
 from bench_matrix.sources.torch_files import RE_EXPORT, brief, check_export_archive, check_torchscript, \
     unpickling_cause
 
@@ -29,10 +30,10 @@ def load_module(source: "SourceModel") -> "torch.nn.Module":
         return _torchscript(source)
     if source.format == "torch_export":  # exported in inference mode already; its module refuses .eval()
         return _exported(source)
-    if source.format == "state_dict":
+    if source.format == "state_dict":  # forward gets the inputs by name where they are named so
         module = build_from_factory(source.factory or "", source.python_path)
         load_weights(module, source)
-        return module.eval()
+        return for_inputs(module.eval(), [spec.name for spec in source.inputs])
     raise ValueError(f"{source.path}: format {source.format!r} is not a PyTorch format")
 
 
