@@ -27,7 +27,7 @@ report: setup
 	$(BIN)/bench-matrix report
 
 test: setup
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --durations=40
 
 bench: setup
 	$(BIN)/python benchmarks/harness_overhead.py
