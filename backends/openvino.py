@@ -86,8 +86,11 @@ class OpenVinoBackend(Backend):
              threads: int) -> Session:
         core = openvino().Core()
         device = DEVICES[target]
+        # OpenVINO 2026.4's CPU plugin computes zeros for int8 models compiled with a static batch of 4 or more
+        # on AVX-512 machines (Xeon Sapphire Rapids; right with ONEDNN_MAX_CPU_ISA=AVX2 or a dynamic batch)
         compiler = Compiler(core, core.read_model(str(artifact_dir / meta["file"])), device,
-                            compile_config(core, device, precision, meta["options"], threads))
+                            compile_config(core, device, precision, meta["options"], threads),
+                            static=precision != "int8")
         if single := compiler.batch_of_one():  # the latency batch, compiled (and checked) now
             compiler.for_shapes(single)
         return OpenVinoSession(compiler, meta["inputs"])
@@ -107,10 +110,12 @@ def _fp32_model(request: ConvertRequest, tmp: Path) -> tuple["ov.Model", dict[st
 
 class Compiler:
     """The model compiled for each set of input shapes it is fed (static shapes ran 3 % faster than a dynamic
-    batch axis on PilotNet); refuses a compiled model computing in another precision than asked."""
+    batch axis on PilotNet), or once with its own shapes (`static` False); refuses a compiled model computing
+    in another precision than asked."""
 
-    def __init__(self, core: "ov.Core", model: "ov.Model", device: str, config: dict[str, Any]):
-        self.core, self.model, self.device, self.config = core, model, device, config
+    def __init__(self, core: "ov.Core", model: "ov.Model", device: str, config: dict[str, Any],
+                 static: bool = True):
+        self.core, self.model, self.device, self.config, self.static = core, model, device, config, static
         self.compiled: dict[tuple[tuple[int, tuple[int, ...]], ...], "ov.CompiledModel"] = {}
         self.ports = {name: port for port in model.inputs for name in port.get_names()}
         self.facts: dict[str, Any] = {"device": device, "device_name": device_name(core, device)}
@@ -127,7 +132,9 @@ class Compiler:
         return shapes
 
     def for_shapes(self, shapes: dict[str, tuple[int, ...]]) -> "ov.CompiledModel":
+        self._check(shapes)
         key = tuple(sorted((self.ports[name].get_index(), shape) for name, shape in shapes.items()))
+        key = key if self.static else ()
         if key not in self.compiled:
             compiled = self.core.compile_model(self._reshaped(shapes), self.device, self.config)
             found = in_force(compiled)
@@ -139,15 +146,18 @@ class Compiler:
             self.compiled[key] = compiled
         return self.compiled[key]
 
-    def _reshaped(self, shapes: dict[str, tuple[int, ...]]) -> "ov.Model":
-        """The model with static `shapes` (graph input name -> shape): only its dynamic axes may change."""
+    def _check(self, shapes: dict[str, tuple[int, ...]]) -> None:
+        """Refuse `shapes` (graph input name -> shape) that change a fixed axis of the model."""
         for name, shape in shapes.items():
             dims = list(self.ports[name].get_partial_shape())
             fixed = [d.get_length() if d.is_static else s for d, s in zip(dims, shape)]
             if len(dims) != len(shape) or tuple(fixed) != tuple(shape):
                 raise ValueError(f"the OpenVINO model's input {name} takes "
                                  f"{self.ports[name].get_partial_shape()}, not {shape}")
-        if all(self.ports[name].get_partial_shape().is_static for name in shapes):
+
+    def _reshaped(self, shapes: dict[str, tuple[int, ...]]) -> "ov.Model":
+        """The model with static `shapes` (as it is, unless `static`)."""
+        if not self.static or all(self.ports[name].get_partial_shape().is_static for name in shapes):
             return self.model
         model = self.model.clone()
         model.reshape({name: list(shape) for name, shape in shapes.items()})
