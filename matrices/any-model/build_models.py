@@ -27,14 +27,14 @@ os.environ.setdefault("TF_USE_LEGACY_KERAS", "1")  # Keras 2 (tf_keras), as benc
 
 import models  # noqa: E402  (models.py, next to this script)
 from bench_matrix.data import load_split, prepare  # noqa: E402
-from bench_matrix.matrix.spec import DatasetSpec  # noqa: E402
+from bench_matrix.matrix.spec import DatasetSpec, Preprocess  # noqa: E402
 from bench_matrix.workspace import Workspace  # noqa: E402
 
 SEED = 0
 WORKSPACE = Workspace(HERE.parents[1] / ".bench-matrix" / "any-model")  # shares the run's dataset cache
 # The matrix's top-level dataset; tests/test_any_model_matrix.py checks the two agree.
 BENDS = DatasetSpec(kind="builtin", builtin="driving_bends", task="classification", samples=2000, circuits=20,
-                    seed=SEED)
+                    seed=SEED, preprocess=Preprocess(scale=1.0 / 255.0))
 TABULAR_ROWS, TABULAR_FEATURES = 2000, 12
 
 
