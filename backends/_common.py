@@ -8,9 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.backends.base import ConvertRequest
-from bench_matrix.matrix.spec import StrategySpec
-from bench_matrix.tensors import Inputs, count, take
+from bench_matrix.plugin import ConvertRequest, Inputs, StrategySpec, count, take
 
 CALIBRATION_BATCH = 32
 DEFAULT_CALIBRATION_SAMPLES = 100

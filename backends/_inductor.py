@@ -16,9 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from bench_matrix.measure.env import installed_versions
-from bench_matrix.sources import SourceModel
-from bench_matrix.tensors import TensorSpec, example_inputs
+from bench_matrix.plugin import SourceModel, TensorSpec, example_inputs, installed_versions
 
 from ._torch import TorchSession, cuda_reasons
 

@@ -8,9 +8,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bench_matrix.backends.base import ConvertRequest
-from bench_matrix.measure.env import installed_versions
-from bench_matrix.tensors import count
+from bench_matrix.plugin import ConvertRequest, count, installed_versions
 
 from ._common import CALIBRATION_BATCH, batches, calibration_data
 from ._openvino import DEVICES, openvino

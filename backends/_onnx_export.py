@@ -7,9 +7,7 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from bench_matrix.backends.base import ConvertRequest
-from bench_matrix.sources import ModelFileError, SourceModel
-from bench_matrix.sources.onnx_file import load_onnx
+from bench_matrix.plugin import ConvertRequest, ModelFileError, SourceModel, load_onnx, tensorflow
 
 from ._torch import example_tensors, flat_module, quiet_torch
 
@@ -63,8 +61,6 @@ def _torch_to_onnx(request: ConvertRequest, tmp: Path) -> "onnx.ModelProto":
 def _keras_to_onnx(request: ConvertRequest) -> "onnx.ModelProto":
     """A Keras model through tf2onnx, one signature entry per input (its dtype; the batch and free axes dynamic);
     the layout (NHWC) stays the model's own."""
-    from bench_matrix.sources.tensorflow import tensorflow
-
     tf = tensorflow(request.threads)
     import tf2onnx
 

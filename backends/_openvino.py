@@ -8,7 +8,7 @@ import re
 import sys
 from typing import TYPE_CHECKING, Any
 
-from bench_matrix.measure.env import installed_versions
+from bench_matrix.plugin import installed_versions
 
 if TYPE_CHECKING:
     import openvino as ov

@@ -21,9 +21,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bench_matrix import hardware
-from bench_matrix.backends.base import Session
-from bench_matrix.measure.env import installed_versions
+from bench_matrix.plugin import Session, cuda_mismatch_reason, installed_versions, no_gpu_reason, \
+    precision_reason
 
 if TYPE_CHECKING:
     import onnxruntime
@@ -201,13 +200,13 @@ def missing_library_reason(provider: str, soname: str, built_for: str | None) ->
 def gpu_reasons(target: str, precision: str, available: list[str], built_for: str | None) -> list[str]:
     """Each missing piece once, in order: GPU, provider, driver for the build's CUDA, GPU generation."""
     wanted = PROVIDERS[target]
-    reasons = [reason] if (reason := hardware.no_gpu_reason()) else []
+    reasons = [reason] if (reason := no_gpu_reason()) else []
     if wanted not in available:
         reasons.append(f"the installed {package()} has no {wanted} (it has {', '.join(available)}); "
                        f"install onnxruntime-gpu in its place")
-    if reason := hardware.cuda_mismatch_reason(package().split()[0], built_for):
+    if reason := cuda_mismatch_reason(package().split()[0], built_for):
         reasons.append(reason)
-    if reason := hardware.precision_reason(precision, f"{precision} on {wanted}"):
+    if reason := precision_reason(precision, f"{precision} on {wanted}"):
         reasons.append(reason)
     return reasons
 

@@ -6,8 +6,8 @@ import importlib.util
 from collections.abc import Sequence
 from typing import Any
 
-from bench_matrix import hardware
-from bench_matrix.measure.env import installed_versions
+from bench_matrix.plugin import cuda_mismatch_reason, installed_versions, no_gpu_reason, precision_reason, \
+    tensorflow
 
 # Every distribution that installs the `tensorflow` module; those installed are reported.
 DISTRIBUTIONS = ("tensorflow", "tensorflow-cpu", "tensorflow-gpu", "tf-keras")
@@ -27,17 +27,15 @@ def missing_tensorflow() -> str | None:
 
 def probe_tensorflow_gpu() -> str | None:
     """Why TensorFlow cannot run on an NVIDIA GPU here (every missing piece), or None."""
-    reasons = [reason] if (reason := hardware.no_gpu_reason()) else []
+    reasons = [reason] if (reason := no_gpu_reason()) else []
     if missing := missing_tensorflow():
         return "; ".join([*reasons, missing])
-    from bench_matrix.sources.tensorflow import tensorflow
-
     tf = tensorflow()
     build = tf.sysconfig.get_build_info()
     if not tf.test.is_built_with_cuda():
         reasons.append(f"this TensorFlow {tf.__version__} is a CPU-only build (tf.test.is_built_with_cuda() is "
                        f"False); install a CUDA build, e.g. tensorflow[and-cuda] on Linux")
-    elif mismatch := hardware.cuda_mismatch_reason(f"TensorFlow {tf.__version__}", build.get("cuda_version")):
+    elif mismatch := cuda_mismatch_reason(f"TensorFlow {tf.__version__}", build.get("cuda_version")):
         reasons.append(mismatch)
     elif not reasons and not tf.config.list_physical_devices("GPU"):
         reasons.append(f"TensorFlow {tf.__version__} (built for CUDA {build.get('cuda_version')}, cuDNN "
@@ -49,12 +47,10 @@ def probe_tensorflow_gpu() -> str | None:
 def probe_tftrt(precision: str = "fp32") -> str | None:
     """Why TF-TRT cannot run `precision` here: no GPU, no CUDA build, not a TensorRT build, a GPU too old."""
     reasons = [reason] if (reason := probe_tensorflow_gpu()) else []
-    if too_old := hardware.precision_reason(precision, f"TF-TRT {precision.upper()}"):
+    if too_old := precision_reason(precision, f"TF-TRT {precision.upper()}"):
         reasons.append(too_old)
     if missing_tensorflow():
         return "; ".join(reasons)
-    from bench_matrix.sources.tensorflow import tensorflow
-
     tf = tensorflow()
     if not tf.sysconfig.get_build_info().get("is_tensorrt_build", False):
         reasons.append(f"TensorFlow {tf.__version__} is not a TensorRT build "

@@ -8,11 +8,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bench_matrix import hardware
-from bench_matrix.backends.base import Backend, Session
-from bench_matrix.measure.env import installed_versions
-from bench_matrix.sources.pytorch import quiet_torch, use_engine
-from bench_matrix.tensors import Inputs, TensorSpec, example_inputs
+from bench_matrix.plugin import Backend, Inputs, Session, TensorSpec, cuda_mismatch_reason, example_inputs, \
+    installed_versions, no_gpu_reason, precision_reason, quiet_torch, use_engine
 
 from ._common import flat_outputs
 
@@ -38,18 +35,18 @@ def torch_dtype(precision: str) -> "torch.dtype":
 
 def cuda_reasons(precision: str, what: str | None = None) -> list[str]:
     """Why torch cannot run `precision` on an NVIDIA GPU here: every missing piece, each with its fix."""
-    reasons = [reason] if (reason := hardware.no_gpu_reason()) else []
+    reasons = [reason] if (reason := no_gpu_reason()) else []
     import torch
 
     if torch.version.cuda is None:
         reasons.append(f"torch {torch.__version__} is a CPU-only build (install a CUDA build of torch)")
-    elif mismatch := hardware.cuda_mismatch_reason("torch", torch.version.cuda):
+    elif mismatch := cuda_mismatch_reason("torch", torch.version.cuda):
         reasons.append(mismatch)
     elif not reasons and not torch.cuda.is_available():
         reasons.append(f"torch {torch.__version__} (CUDA {torch.version.cuda}) cannot use the GPU that nvidia-smi "
                        f"lists: torch.cuda.is_available() is False (check CUDA_VISIBLE_DEVICES and the GPU's "
                        f"compute mode)")
-    if too_old := hardware.precision_reason(precision, what):
+    if too_old := precision_reason(precision, what):
         reasons.append(too_old)
     elif precision == "bf16" and not reasons and not torch.cuda.is_bf16_supported(including_emulation=False):
         reasons.append(f"{torch.cuda.get_device_name()} has no native bf16 (torch.cuda.is_bf16_supported("
@@ -176,7 +173,9 @@ class TorchSession(Session):
 
 
 class TorchBackend(Backend):
-    """What the PyTorch-runtime backends share: their library versions and their probe."""
+    """What the PyTorch-runtime backends share: their library versions, their probe and their GPU target."""
+
+    devices = {"cuda": "cuda"}
 
     def versions(self) -> dict[str, str]:
         return torch_versions()

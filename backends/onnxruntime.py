@@ -11,11 +11,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
-from bench_matrix.matrix.schema import QAT_KINDS
-from bench_matrix.matrix.spec import StrategySpec
-from bench_matrix.measure.env import installed_versions
-from bench_matrix.tensors import Inputs, count, resize
+from bench_matrix.plugin import QAT_KINDS, Backend, ConvertRequest, Inputs, Session, StrategySpec, Support, \
+    count, installed_versions, resize
 
 from ._common import CALIBRATION_BATCH, batches, calibration_data, static_options_reason
 from ._onnx_export import fp32_model, graph_feeds, opset
@@ -49,6 +46,7 @@ class OnnxRuntimeBackend(Backend):
                 # a tfmot QAT model: tf2onnx turns its fake-quantisation into QuantizeLinear/DequantizeLinear pairs
                 Support(("tensorflow",), QAT_KINDS, ("int8",), ("cpu",)))
     baseline_for = ("onnx",)
+    devices = {"cuda": "cuda", "tensorrt": "cuda"}  # the TensorRT provider runs on the NVIDIA GPU
 
     def versions(self) -> dict[str, str]:
         return installed_versions(*DISTRIBUTIONS, *TENSORRT, "onnx", "torch", "tf2onnx", "tensorflow")

@@ -11,10 +11,8 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
-from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
-from bench_matrix.matrix.spec import StrategySpec
-from bench_matrix.measure.env import installed_versions
-from bench_matrix.tensors import Inputs
+from bench_matrix.plugin import Backend, ConvertRequest, Inputs, Session, StrategySpec, Support, \
+    installed_versions
 
 from ._common import static_options_reason
 from ._nncf import METHODS, quantise
@@ -42,6 +40,7 @@ class OpenVinoBackend(Backend):
                    "device computes them, int8 by NNCF post-training quantisation")
     supports = (Support(FRAMEWORKS, ("none",), ("fp32", "fp16", "bf16"), TARGETS),
                 Support(FRAMEWORKS, ("ptq_static",), ("int8",), TARGETS))
+    devices = {}  # not CUDA: the Intel GPU and NPU are timed from the host, as the CPU is
     options = {
         "hint": {"enum": ["latency", "throughput"], "default": "latency",
                  "description": "OpenVINO's PERFORMANCE_HINT at compile_model"},

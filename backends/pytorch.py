@@ -6,8 +6,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from bench_matrix.backends.base import ConvertRequest, Session, Support
-from bench_matrix.sources import SourceModel
+from bench_matrix.plugin import ConvertRequest, Session, SourceModel, Support
 
 from ._torch import TorchBackend, TorchSession, pin_threads, place
 

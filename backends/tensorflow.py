@@ -9,10 +9,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
-from bench_matrix.sources import SourceModel
-from bench_matrix.sources.tensorflow import tensorflow, thread_settings
-from bench_matrix.tensors import Inputs, TensorSpec, example_inputs
+from bench_matrix.plugin import Backend, ConvertRequest, Inputs, Session, SourceModel, Support, TensorSpec, \
+    example_inputs, tensorflow, thread_settings
 
 from ._common import flat_outputs
 from ._tf import keras_arguments, missing_tensorflow, probe_tensorflow_gpu, tf_versions
@@ -32,6 +30,7 @@ class TensorFlowBackend(Backend):
     # Sequential and functional models only, not for a revived SavedModel); TF-TRT runs TensorFlow models at fp16.
     supports = (Support(("tensorflow",), ("none",), ("fp32",), ("cpu", "cuda")),)
     baseline_for = ("tensorflow",)
+    devices = {"cuda": "cuda"}
 
     def versions(self) -> dict[str, str]:
         return tf_versions()
@@ -71,6 +70,7 @@ class KerasPredictBackend(TensorFlowBackend):
     description = "Keras model.predict per call (it builds a tf.data pipeline each call); not a baseline"
     supports = (Support(("tensorflow",), ("none",), ("fp32",), ("cpu",)),)
     baseline_for = ()
+    devices = {}
 
     def load(self, artifact_dir: Path, meta: dict[str, Any], target: str, precision: str,
              threads: int) -> Session:

@@ -10,11 +10,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
-from bench_matrix.matrix.schema import QAT_KINDS
-from bench_matrix.matrix.spec import StrategySpec
-from bench_matrix.sources.tensorflow import tensorflow
-from bench_matrix.tensors import Inputs, count, take
+from bench_matrix.plugin import QAT_KINDS, Backend, ConvertRequest, Inputs, Session, StrategySpec, Support, \
+    count, take, tensorflow
 
 from ._common import calibration_data
 from ._tf import missing_tensorflow, tf_versions

@@ -11,10 +11,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
-from bench_matrix.matrix.spec import StrategySpec
-from bench_matrix.sources.tensorflow import tensorflow, thread_settings
-from bench_matrix.tensors import Inputs, TensorSpec, concrete, count, take
+from bench_matrix.plugin import Backend, ConvertRequest, Inputs, Session, StrategySpec, Support, TensorSpec, \
+    concrete, count, take, tensorflow, thread_settings
 
 from ._common import calibration_data, flat_outputs, static_options_reason
 from ._tf import keras_arguments, probe_tftrt, tf_versions
@@ -41,6 +39,7 @@ class TFTRTBackend(Backend):
     description = "TF-TRT (TensorFlow with TensorRT engines): FP32, FP16, INT8 with entropy calibration"
     supports = (Support(("tensorflow",), ("none",), ("fp32", "fp16"), ("tensorrt",)),
                 Support(("tensorflow",), ("ptq_static",), ("int8",), ("tensorrt",)))
+    devices = {"tensorrt": "cuda"}
 
     def versions(self) -> dict[str, str]:
         return tf_versions("tensorrt")

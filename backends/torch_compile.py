@@ -7,10 +7,8 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
-from bench_matrix.matrix.spec import StrategySpec
-from bench_matrix.sources import SourceModel
-from bench_matrix.tensors import specs_from_list, specs_to_list
+from bench_matrix.plugin import Backend, ConvertRequest, Session, SourceModel, StrategySpec, Support, \
+    specs_from_list, specs_to_list
 
 from ._inductor import cell_batches, compile_now, fixed_shapes_reason, inductor_versions, \
     no_precompiled_headers, private_cache, run_batches, source_reason, toolchain_reasons
@@ -29,6 +27,7 @@ class InductorBackend(Backend):
     """What both compilers share: their libraries, the toolchain probe and the sources they take."""
 
     supports = SUPPORTS
+    devices = {"cuda": "cuda"}
     python_headers = False  # whether the generated CPU code includes Python's C headers
 
     def versions(self) -> dict[str, str]:

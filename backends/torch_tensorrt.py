@@ -13,11 +13,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 
-from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
-from bench_matrix.matrix.spec import StrategySpec
-from bench_matrix.measure.env import installed_versions
-from bench_matrix.sources import SourceModel
-from bench_matrix.tensors import TensorSpec, count, example_inputs, specs_from_list, specs_to_list
+from bench_matrix.plugin import Backend, ConvertRequest, Session, SourceModel, StrategySpec, Support, \
+    TensorSpec, count, example_inputs, installed_versions, specs_from_list, specs_to_list
 
 from ._common import batches, calibration_data, static_options_reason
 from ._torch import TorchSession, as_tensors, cuda_reasons, example_tensors, pin_threads, place, quiet_torch, \
@@ -42,6 +39,7 @@ class TorchTensorRTBackend(Backend):
     description = "Torch-TensorRT: TensorRT engines compiled ahead of time (dynamo frontend); int8 by NVIDIA ModelOpt"
     supports = (Support(("pytorch",), ("none",), ("fp32", "fp16"), ("tensorrt",)),
                 Support(("pytorch",), ("ptq_static",), ("int8",), ("tensorrt",)))
+    devices = {"tensorrt": "cuda"}
 
     def versions(self) -> dict[str, str]:
         return installed_versions(*LIBRARIES)

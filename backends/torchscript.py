@@ -5,9 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from bench_matrix.backends.base import ConvertRequest, Session, Support
-from bench_matrix.matrix.spec import StrategySpec
-from bench_matrix.tensors import count, take
+from bench_matrix.plugin import ConvertRequest, Session, StrategySpec, Support, count, take
 
 from ._common import batches, calibration_data, static_options_reason
 from ._torch import TorchBackend, TorchSession, as_tensors, example_tensors, flat_module, pin_threads, place, \

@@ -160,8 +160,8 @@ def _check_results(args: argparse.Namespace) -> None:
 
 
 def _load(args: argparse.Namespace):
-    from bench_matrix.backends.registry import available
     from bench_matrix.matrix import load_matrix
+    from bench_matrix.registry import available
     from bench_matrix.workspace import Workspace
 
     return load_matrix(args.matrix, backends=list(available())), Workspace(args.workspace)
@@ -232,8 +232,8 @@ def _schema(args: argparse.Namespace, console) -> int:
     if args.builtin:
         sys.stdout.write(schema_json(SCHEMA))
         return 0
-    from bench_matrix.backends.registry import vocabulary
     from bench_matrix.measure.metric_plugins import metric_names
+    from bench_matrix.registry import vocabulary
 
     sys.stdout.write(schema_json(installed_schema(vocabulary(), metric_names())))
     return 0

@@ -10,7 +10,7 @@ from functools import lru_cache
 from pathlib import Path
 
 # The lowest compute capability each precision needs on an NVIDIA GPU: fp16 arithmetic (Pascal sm_60 runs it,
-# Volta sm_70 on tensor cores), bf16 (Ampere sm_80), int8 inference in TensorRT (sm_61, DP4A).
+# Volta sm_70 on tensor cores), bf16 (Ampere sm_80), int8 inference (sm_61, DP4A).
 MIN_CAPABILITY = {"fp16": (6, 0), "bf16": (8, 0), "int8": (6, 1)}
 
 

@@ -10,7 +10,6 @@ from pathlib import Path
 from typing import Any
 
 from bench_matrix import __version__, data
-from bench_matrix.backends.registry import available
 from bench_matrix.cell import Cell, CellPlan, ClosedLoopPlan
 from bench_matrix.errors import MatrixError, UserError
 from bench_matrix.jobs import ProbeJob
@@ -20,8 +19,9 @@ from bench_matrix.matrix.expand import Verdict, combinations, plan, training_key
 from bench_matrix.matrix.spec import DatasetSpec, Matrix, ModelSpec
 from bench_matrix.matrix.yamlpos import format_path
 from bench_matrix.measure import env as environment
-from bench_matrix.sources.forward_call import Parameter, call_problem
+from bench_matrix.registry import available
 from bench_matrix.sources.code import model_code
+from bench_matrix.sources.forward_call import Parameter, call_problem
 from bench_matrix.tensors import TensorSpec, binding_problem, specs_from_list
 from bench_matrix.workspace import Workspace, digest, file_sha256, tree_sha256
 

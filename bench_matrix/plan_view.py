@@ -10,12 +10,11 @@ from rich.markup import escape
 from rich.padding import Padding
 from rich.table import Table
 
-from bench_matrix.backends.registry import available
 from bench_matrix.cell import CellPlan
 from bench_matrix.jobs import ProbeJob
 from bench_matrix.launcher import run_job
-from bench_matrix.matrix.schema import TARGETS
 from bench_matrix.plan import PROBE_TIMEOUT_S, Plan
+from bench_matrix.registry import available, vocabulary
 from bench_matrix.runner import Filters, Runner
 from bench_matrix.store import ResultStore
 from bench_matrix.workspace import Workspace
@@ -89,13 +88,15 @@ def _invalid_table(invalid: list[CellPlan], show_all: bool) -> Table:
 
 
 def show_backends(console: Console, ws: Workspace) -> None:
-    """Every installed backend: its package, what it supports, and per target whether this machine runs it."""
+    """Every installed backend: its package, what it supports, and per installed target whether this machine
+    runs it."""
     entries = available()
     outcome = run_job(ProbeJob(ws, tuple(entries)), ws.jobs, ws.log("probe"), PROBE_TIMEOUT_S)
     if not outcome.ok:
         console.print(f"[red]probing the backends failed:[/] {escape(outcome.error or '')}")
         return
     described, verdicts = outcome.value["backends"], outcome.value["verdicts"]
+    targets = list(vocabulary().targets)
     for name, entry in entries.items():
         info = described[name]
         console.print(f"[bold]{name}[/]  [dim]{escape(entry.distribution)} · {escape(entry.value)}[/]")
@@ -111,8 +112,7 @@ def show_backends(console: Console, ws: Workspace) -> None:
         for s in info["supports"]:
             grid.add_row("supports", f"{'/'.join(s['frameworks'])}: {', '.join(s['strategies'])} at "
                                      f"{', '.join(s['precisions'])} on {', '.join(s['targets'])}")
-        declared = {t for s in info["supports"] for t in s["targets"]}
-        for target in [*TARGETS, *sorted(declared - set(TARGETS))]:
+        for target in targets:
             grid.add_row(target, _target_status(name, target, verdicts))
         grid.add_row("versions", escape(", ".join(f"{k} {v}" for k, v in info["versions"].items()) or "—"))
         console.print(Padding(grid, (0, 0, 1, 2)))

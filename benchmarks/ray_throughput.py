@@ -69,10 +69,10 @@ def start_cluster(root: Path):
 
 def fixed_cost(project: Path, address: str) -> dict[str, float]:
     """Seconds the driver spends once per run: connecting to the cluster, probing every node."""
-    from bench_matrix.backends.registry import available
     from bench_matrix.executors.ray_cluster import RayExecutor
     from bench_matrix.matrix import load_matrix
     from bench_matrix.plan import resolve
+    from bench_matrix.registry import available
     from bench_matrix.workspace import Workspace
 
     ws = Workspace(project / "ws")

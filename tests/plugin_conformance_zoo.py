@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
+from bench_matrix.plugin import Backend, ConvertRequest, Session, Support
 
 FILE = "model.onnx"
 
@@ -173,10 +173,12 @@ class AsyncExecute(GoodOrt):
 
 
 class BadAnswers(GoodOrt):
-    """Answers with values that are neither a reason nor None, names no library, and accepts anything."""
+    """Answers with values that are neither a reason nor None, names no library, accepts anything, and says
+    its npu is a device bench-matrix does not know."""
 
     name = "bad_answers"
     supports = (Support(("onnx",), ("none",), ("fp32",), ("cpu", "npu")),)
+    devices = {"npu": "npu"}
 
     def versions(self) -> dict[str, str]:
         return {}

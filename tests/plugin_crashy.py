@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 
-from bench_matrix.backends.base import Backend, Session, Support
+from bench_matrix.plugin import Backend, Session, Support
 
 
 class CrashyBackend(Backend):

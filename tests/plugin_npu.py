@@ -1,5 +1,6 @@
 """Third-party backends for the vocabulary tests: a target (npu), a precision (int4) and options (hint,
-streams) bench-matrix does not know; installed as a .dist-info with entry points."""
+streams) bench-matrix does not know, and a target on the CUDA device; installed as a .dist-info with entry
+points."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.backends.base import Backend, ConvertRequest, Session, Support
+from bench_matrix.plugin import Backend, ConvertRequest, Session, Support
 
 EMULATE = "NPU_RT_EMULATE"  # set: the "npu" target runs on ONNX Runtime's CPU provider (a stand-in device)
 
@@ -59,6 +60,19 @@ class NpuSession(Session):
 
     def info(self) -> dict[str, Any]:
         return {"hint": self._meta["hint"], "streams": self._meta["streams"]}
+
+
+class FakeGpuBackend(NpuBackend):
+    """Says its fake_gpu target runs on the CUDA device, and runs it on ONNX Runtime's CPU provider: what the
+    measure job does on a GPU (end-to-end latency, the GPU's name and memory), on a machine without one."""
+
+    name = "fake_gpu"
+    supports = (Support(("onnx",), ("none",), ("fp32",), ("cpu", "fake_gpu")),)
+    options = {}
+    devices = {"fake_gpu": "cuda"}
+
+    def probe(self, target: str, precision: str) -> str | None:
+        return None
 
 
 class BadOptionsBackend(NpuBackend):

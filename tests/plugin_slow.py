@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.backends.base import Session
+from bench_matrix.plugin import Session
 from bench_matrix_backends.onnxruntime import OnnxRuntimeBackend
 
 # from about 0.2 s on, the late commands visibly worsen the driving (docs/closed-loop.md); $SLOW_ORT_DELAY_MS

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from bench_matrix.backends.registry import available
 from bench_matrix.conformance import BackendConformance
 from bench_matrix.conformance.cases import cases_of
 from bench_matrix.conformance.here import Here
+from bench_matrix.registry import available
 
 TESTS = Path(__file__).resolve().parent
 sys.path.insert(0, str(TESTS))
@@ -47,7 +47,8 @@ BROKEN = {"good_ort": set(), "no_device": set(), "litters": {"convert-writes-onl
           "nan_out": {"outputs-finite"}, "drifts": {"load-is-repeatable", "convert-is-repeatable"},
           "async_execute": {"execute-waits-for-its-work"},
           "bad_answers": {"probe-answers-reason-or-none", "option-reason-answers-reason-or-none",
-                          "versions-names-libraries", "invalid-reason-agrees-with-supports"},
+                          "versions-names-libraries", "invalid-reason-agrees-with-supports",
+                          "declares-devices"},
           "refuses": {"convert-succeeds"}, "keeps_out_dir": {"load-succeeds"},
           "path_in_meta": {"meta-is-json"}, "unloadable": {"backend-loads"}}
 

@@ -19,7 +19,7 @@ from convert_helper import convert_with  # noqa: E402
 
 import torch  # noqa: E402
 
-from bench_matrix.backends.base import Backend  # noqa: E402
+from bench_matrix.backend import Backend  # noqa: E402
 from bench_matrix.cli import main  # noqa: E402
 from bench_matrix.matrix.spec import StrategySpec  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402

@@ -207,10 +207,10 @@ def test_unbounded_input_exits_2_in_bounded_time_and_memory(case: str, project: 
 def prepare_data(project: Path, case: fc.Case) -> Outcome:
     """What `run` does with a dataset, in this process: validate the matrix, then read, check and split the
     data (the job a child does); a UserError there stops the run with exit 2, anything else is a traceback."""
-    from bench_matrix.backends.registry import available
     from bench_matrix.jobs import DatasetJob
     from bench_matrix.jobs.prepare import prepare_dataset
     from bench_matrix.matrix import load_matrix
+    from bench_matrix.registry import available
     from bench_matrix.workspace import Workspace
 
     (project / "tiny.onnx").write_bytes(fc.onnx_model())

@@ -19,7 +19,7 @@ from convert_helper import convert_with  # noqa: E402
 
 import torch  # noqa: E402
 
-from bench_matrix.backends.base import Backend  # noqa: E402
+from bench_matrix.backend import Backend  # noqa: E402
 from bench_matrix.sources import ModelFileError, SourceModel  # noqa: E402
 from bench_matrix.sources.model_io import read_inputs  # noqa: E402
 from bench_matrix.tensors import Inputs, TensorSpec  # noqa: E402

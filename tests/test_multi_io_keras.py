@@ -18,7 +18,7 @@ sys.path.insert(0, str(TESTS))
 import tiny_keras  # noqa: E402
 from convert_helper import convert_with  # noqa: E402
 
-from bench_matrix.backends.base import Backend  # noqa: E402
+from bench_matrix.backend import Backend  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
 from bench_matrix.sources.model_io import read_inputs  # noqa: E402
 from bench_matrix.sources.tensorflow import tensorflow  # noqa: E402

@@ -28,7 +28,7 @@ from bench_matrix_backends.onnxruntime import (  # noqa: E402
 )
 
 from bench_matrix import hardware  # noqa: E402
-from bench_matrix.backends.base import ConvertRequest, Session  # noqa: E402
+from bench_matrix.backend import ConvertRequest, Session  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
 
 BACKEND = OnnxRuntimeBackend()

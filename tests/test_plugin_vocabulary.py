@@ -5,15 +5,14 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-from bench_matrix.backends.registry import vocabulary
+from bench_matrix import registry
 from bench_matrix.errors import MatrixError
 from bench_matrix.matrix import load_matrix
+from bench_matrix.registry import vocabulary
 from conftest import TESTS, cli
 from fuzz_cases import onnx_model
 
@@ -24,7 +23,9 @@ axes: {backend: [npu_rt], strategy: [none], precision: [fp32, int4], target: [cp
 backend_options: {npu_rt: {hint: latency, streams: 2}}
 """
 ENTRY_POINTS = ("npu_rt = plugin_npu:NpuBackend\nbad_opts = plugin_npu:BadOptionsBackend\n"
-                "gone = no_such_module_of_bench_matrix:Backend\n")
+                "fake_gpu = plugin_npu:FakeGpuBackend\ngone = no_such_module_of_bench_matrix:Backend\n")
+FAST = ("settings: {min_iterations: 5, min_time_s: 0.02, warmup_s: 0.0, throughput_time_s: 0.02, "
+        "batch_size: 4}\n")
 
 
 def install(root: Path) -> Path:
@@ -130,17 +131,12 @@ def test_without_the_plugin_its_vocabulary_is_refused(tmp_path):
         in found
 
 
-def test_a_plain_matrix_imports_no_backend(tmp_path):
-    """load_matrix reads the installed vocabulary only for a matrix that needs it."""
-    (tmp_path / "tiny.onnx").write_bytes(onnx_model())
-    plain = MATRIX.replace(", int4", "").replace(", npu", "").replace("npu_rt", "onnxruntime")
-    plain = plain.split("backend_")[0]
-    (tmp_path / "m.yaml").write_text(plain)
-    code = ("import sys; from bench_matrix.matrix import load_matrix; load_matrix(sys.argv[1]); "
-            "print(sorted(m for m in sys.modules if m.startswith('bench_matrix_backends')))")
-    done = subprocess.run([sys.executable, "-c", code, str(tmp_path / "m.yaml")], capture_output=True,
-                          text=True)
-    assert done.returncode == 0 and done.stdout.strip() == "[]", done.stdout + done.stderr
+def test_targets_are_only_those_installed_backends_declare(project, monkeypatch):
+    """bench-matrix knows no target of its own: with npu_rt the only backend installed, cuda is refused."""
+    only = {name: entry for name, entry in registry.available().items() if name == "npu_rt"}
+    monkeypatch.setattr(registry, "available", lambda: only)
+    (problem,) = problems(project, MATRIX.replace("target: [cpu, npu]", "target: [cpu, cuda]"))
+    assert ":3: axes.target[1]: 'cuda' is not allowed; allowed: cpu, npu" in problem, problem
 
 
 def test_schema_command_lists_the_installed_vocabulary(project):
@@ -169,8 +165,7 @@ def test_plan_exits_2_on_a_typo_in_declared_vocabulary(project):
 def test_a_plugin_target_and_its_options_run_end_to_end(project):
     """The npu target (emulated on ONNX Runtime's CPU provider) runs, the options reach the conversion, the
     plugin's versions are in the record, its int4 is skipped with the plugin's reason."""
-    (project / "m.yaml").write_text(MATRIX + "settings: {min_iterations: 5, min_time_s: 0.02, warmup_s: 0.0, "
-                                              "throughput_time_s: 0.02, batch_size: 4}\n")
+    (project / "m.yaml").write_text(MATRIX + FAST)
     run = cli(project, "run", "m.yaml", env={"NPU_RT_EMULATE": "1"})
     assert run.returncode == 0, run.stdout + run.stderr
     assert "2 ok, 2 skipped, 0 failed" in run.stdout
@@ -180,3 +175,18 @@ def test_a_plugin_target_and_its_options_run_end_to_end(project):
     assert npu["status"] == "ok" and npu["metrics"]["session"] == {"hint": "latency", "streams": 2}
     assert npu["env"]["backend_versions"] == {"npu-rt": "0.1"} and npu["metrics"]["cosine_similarity"] > 0.999
     assert "int4 needs an NPU compiler" in found[("int4", "npu")]["reason"]
+
+
+@pytest.mark.slow
+def test_a_target_its_backend_runs_on_cuda_is_also_timed_end_to_end(project):
+    """The measure job asks the loaded backend where the target runs: on cuda (here emulated on the CPU) the
+    latency is also timed end to end and the GPU's name and memory are recorded; on the CPU they are not."""
+    text = MATRIX.split("axes:")[0] + "axes: {backend: [fake_gpu], strategy: [none], precision: [fp32], " \
+                                      "target: [cpu, fake_gpu]}\n"
+    (project / "m.yaml").write_text(text + FAST)
+    run = cli(project, "run", "m.yaml")
+    assert run.returncode == 0 and "2 ok, 0 skipped, 0 failed" in run.stdout, run.stdout + run.stderr
+    found = {r["cell"]["target"]: r["metrics"] for r in json.loads(cli(project, "report", "--format",
+                                                                         "json").stdout)}
+    gpu_only = {"latency_ms_e2e", "gpu_name", "peak_gpu_mem_mb", "gpu_mem_method"}
+    assert gpu_only <= set(found["fake_gpu"]) and not gpu_only & set(found["cpu"])

@@ -109,6 +109,22 @@ def test_jobs_move_to_a_node_workspace_with_the_shipped_paths(tmp_path):
     assert work.plan.cell == cell and work.convert.settings == Settings()
 
 
+def test_tasks_ask_for_a_gpu_where_the_backend_runs_the_target_on_cuda(tmp_path):
+    """The GPU share follows each backend's `devices`, as the nodes' probes report them."""
+    from bench_matrix.executors.ray_cluster import GPU_SHARE, gpu_share
+    from bench_matrix.jobs import ProbeJob
+    from bench_matrix.jobs.probe import devices, probe
+
+    described = probe(ProbeJob(Workspace(tmp_path), ("onnxruntime", "openvino"), keys=()))["backends"]
+    known = devices(described)
+
+    def share(backend: str, target: str) -> float:
+        return gpu_share(known, Cell("m", "onnx", backend, "none", "fp32", target))
+
+    assert share("onnxruntime", "cuda") == share("onnxruntime", "tensorrt") == GPU_SHARE
+    assert share("onnxruntime", "cpu") == share("openvino", "intel_gpu") == share("gone", "cuda") == 0
+
+
 @needs_ray
 @pytest.mark.slow
 def test_a_ray_run_records_what_a_local_run_does_on_the_nodes(onnx_project, cluster):

@@ -26,8 +26,8 @@ from test_backends import CALIBRATION, X  # noqa: E402
 import torch  # noqa: E402
 
 from bench_matrix import hardware  # noqa: E402
-from bench_matrix.backends import registry  # noqa: E402
-from bench_matrix.backends.base import Backend  # noqa: E402
+from bench_matrix import registry  # noqa: E402
+from bench_matrix.backend import Backend  # noqa: E402
 from bench_matrix.matrix.spec import StrategySpec  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
 from bench_matrix_backends import torch_tensorrt as trt_backend  # noqa: E402

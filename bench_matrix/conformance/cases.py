@@ -8,7 +8,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from bench_matrix.backends.base import Backend
+from bench_matrix.backend import Backend
 from bench_matrix.conformance.models import MODELS
 from bench_matrix.matrix.schema import STRATEGY_KINDS
 

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.backends.base import Session
+from bench_matrix.backend import Session
 from bench_matrix.conformance.cases import RuleBroken, Tolerance
 from bench_matrix.measure.metrics import non_finite_reason
 from bench_matrix.tensors import Inputs

@@ -26,7 +26,7 @@ def infos(jobs: list[dict[str, Any]], threads: int, cwd: Path) -> dict[str, dict
 
 
 def _info(job: dict[str, Any]) -> dict[str, Any]:
-    from bench_matrix.backends.registry import load_backend
+    from bench_matrix.registry import load_backend
 
     try:
         session = load_backend(job["backend"]).load(Path(job["artifact"]), job["meta"], job["target"],

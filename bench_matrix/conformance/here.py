@@ -6,11 +6,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from bench_matrix.backends.base import Backend
-from bench_matrix.backends.registry import BackendLoadError, load_backend
+from bench_matrix.backend import Backend
 from bench_matrix.conformance.cases import Case, cases_of
 from bench_matrix.conformance.models import BUILDERS
 from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.registry import BackendLoadError, load_backend
 
 NotRun = list[tuple[Case, str]]  # cases this machine cannot run, each with why
 
@@ -98,7 +98,7 @@ def summary(not_run: NotRun) -> list[str]:
 
 
 def _where(targets: dict[str, dict[str, None]]) -> str:
-    """E.g. 'onnxruntime on cuda, tensorrt; pytorch on cuda'."""
+    """E.g. 'onnxruntime on cuda; openvino on intel_gpu, intel_npu'."""
     return "; ".join(f"{backend} on {', '.join(names)}" for backend, names in targets.items())
 
 

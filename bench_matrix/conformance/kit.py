@@ -12,14 +12,14 @@ from typing import Any, TypeVar
 
 import pytest
 
-from bench_matrix.backends.base import Backend, ConvertRequest, Session
-from bench_matrix.backends.registry import BackendLoadError, load_backend
+from bench_matrix.backend import Backend, ConvertRequest, Session
 from bench_matrix.conformance.cases import Case, RuleBroken
 from bench_matrix.conformance.checks import reported_threads
 from bench_matrix.conformance.fresh import infos
 from bench_matrix.conformance.models import LARGE, THREADS, KitModel, build
 from bench_matrix.conformance.watch import watched
 from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.registry import BackendLoadError, load_backend
 from bench_matrix.tensors import take
 
 T = TypeVar("T")

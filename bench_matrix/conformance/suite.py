@@ -7,7 +7,7 @@ from typing import Any, ClassVar
 
 import pytest
 
-from bench_matrix.backends.base import Session, Support
+from bench_matrix.backend import DEVICES, Session, Support
 from bench_matrix.conformance.cases import REPEAT, SOURCE_FORMATS, TOLERANCES, Case, RuleBroken, Tolerance, \
     combinations, option_variants, reason_problem
 from bench_matrix.conformance.checks import bounds, check_close, check_fetched, pending_work, reported_threads
@@ -45,6 +45,18 @@ def _names(values: Any) -> bool:
     return isinstance(values, tuple) and bool(values) and all(isinstance(v, str) and v for v in values)
 
 
+def _devices_problem(devices: Any, targets: set[str]) -> str | None:
+    """Why `devices` does not map targets the backend declares to DEVICES, or None."""
+    if not isinstance(devices, dict):
+        return f"devices is {devices!r}, not a dict of target -> device"
+    for target, device in devices.items():
+        if target not in targets:
+            return f"devices names {target!r}, a target no Support declares ({', '.join(sorted(targets))})"
+        if device not in DEVICES:
+            return f"devices[{target!r}] is {device!r}; a device is one of {', '.join(DEVICES)}"
+    return None
+
+
 class BackendConformance:
     """The contract every backend keeps, checked on the kit's models for every combination it declares. A
     test module subclasses it (as Test...) with `backends` set; `--bench-matrix-backend NAME` narrows it."""
@@ -74,6 +86,8 @@ class BackendConformance:
         for s, axis in ((s, axis) for s in supports for axis in AXES):
             if not _names(getattr(s, axis)):
                 raise RuleBroken("declares-supports", f"{s!r}: {axis} is not a non-empty tuple of names")
+        if problem := _devices_problem(backend.devices, {t for s in supports for t in s.targets}):
+            raise RuleBroken("declares-devices", problem)
 
     def test_versions_name_libraries(self, backend_name: str, conformance_kit: Kit) -> None:
         versions = conformance_kit.backend(backend_name).versions()

@@ -16,11 +16,11 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from bench_matrix.cell import CellPlan
+from bench_matrix.cell import Cell, CellPlan
 from bench_matrix.errors import UserError
 from bench_matrix.executors import ray_tasks
 from bench_matrix.executors.base import CellResult, CellWork, Executor, Phase, Tick
-from bench_matrix.jobs.cell import GPU_TARGETS
+from bench_matrix.jobs.probe import devices
 from bench_matrix.launcher import Outcome
 from bench_matrix.matrix.expand import Verdict, plan as judge, training_key, verdict_key
 from bench_matrix.measure import env as environment
@@ -32,7 +32,7 @@ from bench_matrix.workspace import Workspace
 TIMING = "bench_matrix_timing"
 MEASURE_SHARE = 0.6  # more than half of a node's 1: two measurements never share a node
 CONVERT_SHARE = 0.01  # beside one measurement, up to 40 conversions fit (CPUs permitting)
-GPU_SHARE = 0.01  # GPU cells' tasks see the node's GPU (Ray hides GPUs from tasks that ask for none)
+GPU_SHARE = 0.01  # tasks of cells on a CUDA device see the node's GPU (Ray hides GPUs from tasks asking none)
 MAX_ATTEMPTS = 3  # a cell whose task or node is lost runs again, elsewhere if need be, this many times in all
 INSTALL = "pip install 'bench-matrix[ray]'"
 NO_USAGE_STATS = "RAY_USAGE_STATS_ENABLED"  # "0": Ray sends no usage statistics from clusters it starts
@@ -65,6 +65,7 @@ class RayExecutor(Executor):
         self.nodes = _timing_nodes(ray.nodes(), address)
         self.hostnames: dict[str, str] = {}  # node id -> host, from the probes
         self._able: dict[str, list[str]] = {}  # cell key -> nodes that can run it
+        self._devices: dict[tuple[str, str], str] = {}  # (backend, target) -> its device, as the nodes probed
         self._shipped: dict[str, ray_tasks.Shipment] = {}
         self._flights: dict[Any, _Flight] = {}
         self._ended: list[CellResult] = []
@@ -106,6 +107,7 @@ class RayExecutor(Executor):
                 states[node] = {p.cell: ("skip", failed) for p in cells}
                 continue
             value = probed["value"]
+            self._devices.update(devices(value["backends"]))
             verdicts = {tuple(json.loads(k)): Verdict(**v) for k, v in value["verdicts"].items()}
             trainers = {tuple(json.loads(k)): Verdict(**v) for k, v in value["trainers"].items()}
             expansion = judge(matrix, [p.cell for p in cells], 0, verdicts, trainers)
@@ -141,9 +143,8 @@ class RayExecutor(Executor):
         self._flights[ref] = flight
 
     def _options(self, work: CellWork, share: float, strategy: Any) -> dict[str, Any]:
-        gpus = GPU_SHARE if work.plan.cell.target in GPU_TARGETS else 0
-        return {"num_cpus": 1, "num_gpus": gpus, "resources": {TIMING: share}, "max_retries": 0,
-                "scheduling_strategy": strategy}
+        return {"num_cpus": 1, "num_gpus": gpu_share(self._devices, work.plan.cell),
+                "resources": {TIMING: share}, "max_retries": 0, "scheduling_strategy": strategy}
 
     def _placement(self, work: CellWork) -> str | None:
         """None (Ray's choice) when every node can run the cell; else the able node with the fewest tasks."""
@@ -260,6 +261,11 @@ class RayExecutor(Executor):
             self.ray.cancel(ref, force=True)
         self._flights.clear()
         self.ray.shutdown()
+
+
+def gpu_share(known: dict[tuple[str, str], str], cell: Cell) -> float:
+    """The GPUs a cell's task asks Ray for: a share where its backend runs its target on CUDA, else none."""
+    return GPU_SHARE if known.get((cell.backend, cell.target)) == "cuda" else 0
 
 
 def _connect(ray: Any, address: str | None) -> None:

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from bench_matrix import data
-from bench_matrix.backends.base import Backend, ConvertRequest, Session
+from bench_matrix.backend import Backend, ConvertRequest, Session
 from bench_matrix.jobs.keys import artifact_key, calibrates, intermediates_key, params_key
 from bench_matrix.matrix.spec import Settings, StrategySpec
 from bench_matrix.sources import SourceModel

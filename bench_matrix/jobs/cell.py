@@ -11,7 +11,6 @@ from typing import Any
 import numpy as np
 
 from bench_matrix import data, hardware
-from bench_matrix.backends.registry import load_backend
 from bench_matrix.jobs import ConvertJob, MeasureJob
 from bench_matrix.jobs.artifact import ensure_artifact, predict_all
 from bench_matrix.jobs.closed_loop import drive_all
@@ -32,11 +31,11 @@ from bench_matrix.measure.timing import (
     steady_throughput,
     steady_time_calls,
 )
+from bench_matrix.registry import load_backend
 from bench_matrix.tensors import bind, resize, take
 from bench_matrix.worker import phase, waiting
 
 LATENCY_INPUTS = 16
-GPU_TARGETS = ("cuda", "tensorrt")  # timed compute-only and end to end; GPU name and memory recorded
 LIMITS = Limits()  # interference above these re-measures a timed phase, then flags the cell
 # stored raw series: the timed phase and the key of its durations (ns) in that phase's result ("" = the result)
 SAMPLED = {"latency_ms": ("latency", ""), "latency_ms_e2e": ("latency_e2e", ""),
@@ -63,7 +62,7 @@ def measure(job: MeasureJob) -> dict[str, Any]:
     few, _ = data.load_split(prepared.directory, "test", prepared.preprocess, job.layout,
                              max(LATENCY_INPUTS, settings.batch_size))
     few = bind(few, job.source.inputs)
-    on_gpu = cell.target in GPU_TARGETS
+    on_gpu = backend.device(cell.target) == "cuda"  # timed compute-only and end to end; GPU name, memory kept
     gpu_memory = GpuMemory() if on_gpu else None  # before the load: the fallback reading subtracts this
     cpus = pin_threads(settings.threads)  # before the load, so the runtime's threads inherit the affinity
     phase("load")

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.backends.base import Session
+from bench_matrix.backend import Session
 from bench_matrix.data import denormalise
 from bench_matrix.images import geometric, to_model_input
 from bench_matrix.jobs import MeasureJob

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from bench_matrix import hardware
-from bench_matrix.backends.base import Backend
+from bench_matrix.backend import Backend
 from bench_matrix.matrix.schema import STRATEGY_KINDS
 from bench_matrix.matrix.spec import ModelSpec, Settings, StrategySpec
 from bench_matrix.sources import SourceModel

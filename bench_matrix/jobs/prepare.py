@@ -12,7 +12,6 @@ from typing import Any
 import numpy as np
 
 from bench_matrix import data
-from bench_matrix.backends.registry import load_backend
 from bench_matrix.cell import NO_STEP
 from bench_matrix.errors import UserError
 from bench_matrix.jobs import DatasetJob, FinetuneJob, ModelJob
@@ -21,6 +20,7 @@ from bench_matrix.jobs.keys import builtin_key, finetune_key, model_key
 from bench_matrix.matrix.spec import ModelSpec
 from bench_matrix.measure import env as environment
 from bench_matrix.measure.metrics import evaluate, non_finite_reason
+from bench_matrix.registry import load_backend
 from bench_matrix.sources import SourceModel
 from bench_matrix.sources.code import model_code
 from bench_matrix.tensors import TensorSpec, binding_problem, bind, take

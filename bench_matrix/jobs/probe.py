@@ -8,11 +8,11 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from bench_matrix.backends.base import Backend
-from bench_matrix.backends.registry import BackendLoadError, load_backend
+from bench_matrix.backend import Backend
 from bench_matrix.errors import UserError
 from bench_matrix.jobs import ProbeJob
 from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.registry import BackendLoadError, load_backend
 from bench_matrix.tensors import specs_to_list
 
 DEFAULT_FORMAT = {"pytorch": "state_dict", "tensorflow": "keras"}  # what built-in models arrive as
@@ -43,8 +43,15 @@ def _load(names: tuple[str, ...]) -> tuple[dict[str, Backend | None], dict[str, 
         described[name] = {"error": None, "description": b.description, "versions": b.versions(),
                            "baseline_for": list(b.baseline_for),
                            "supports": [{k: list(getattr(s, k)) for k in ("frameworks", "strategies",
-                                         "precisions", "targets")} for s in b.supports]}
+                                         "precisions", "targets")} for s in b.supports],
+                           "devices": {t: b.device(t) for s in b.supports for t in s.targets}}
     return backends, described
+
+
+def devices(described: dict[str, Any]) -> dict[tuple[str, str], str]:
+    """(backend, target) -> the device it runs on, from the probe's description of the backends."""
+    return {(name, target): device for name, info in described.items()
+            for target, device in info.get("devices", {}).items()}
 
 
 def _declared(backends: dict[str, Backend | None]) -> list[tuple]:

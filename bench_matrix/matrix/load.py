@@ -17,10 +17,8 @@ from bench_matrix.matrix.schema import (
     BUILTIN_MODELS,
     CELL_KEYS,
     FRAMEWORKS,
-    PRECISIONS,
-    SCHEMA,
     STRATEGY_KINDS,
-    TARGETS,
+    axis_values,
     installed_schema,
 )
 from bench_matrix.matrix.spec import (
@@ -39,10 +37,9 @@ from bench_matrix.matrix.yamlpos import Located, load_with_lines, suggest
 from bench_matrix.workspace import not_regular
 
 if TYPE_CHECKING:
-    from bench_matrix.backends.registry import Vocabulary
+    from bench_matrix.registry import Vocabulary
 
 __all__ = ["load_matrix", "suggest"]
-PLUGGABLE = {"precision": PRECISIONS, "target": TARGETS}  # axes whose values installed backends may add to
 
 
 def _is_integer(_checker: Any, value: Any) -> bool:
@@ -60,17 +57,18 @@ StrictValidator = jsonschema.validators.extend(
 
 
 def load_matrix(path: str | Path, backends: list[str] | None = None) -> Matrix:
-    """Read and validate a matrix; `backends` (installed names) checks the backend axis too. Targets,
-    precisions and options that installed backends declare are accepted (their classes are imported only
-    for a matrix that names such a value or has backend_options)."""
+    """Read and validate a matrix; `backends` (installed names) checks the backend axis too. The targets, and
+    the precisions and options beyond the built-in ones, are those the installed backends' classes declare."""
     path = Path(path)
     data, lines = load_with_lines(path)
     report = Located(path, lines)
     if not isinstance(data, dict):
         raise MatrixError([f"{path}:1: the top level must be a mapping with 'models', 'dataset' and 'axes'"])
-    vocabulary = _vocabulary(data)
-    schema = SCHEMA if vocabulary is None else installed_schema(vocabulary)
-    errors = sorted(StrictValidator(schema).iter_errors(data), key=lambda e: list(map(str, e.absolute_path)))
+    from bench_matrix.registry import vocabulary as installed
+
+    vocabulary = installed()
+    errors = sorted(StrictValidator(installed_schema(vocabulary)).iter_errors(data),
+                    key=lambda e: list(map(str, e.absolute_path)))
     mistyped = {tuple(e.absolute_path) for e in errors if e.validator == "type"}
     for error in errors:  # a value of the wrong type gets one message, not also its bounds
         if error.validator == "type" or tuple(error.absolute_path) not in mistyped:
@@ -81,26 +79,6 @@ def load_matrix(path: str | Path, backends: list[str] | None = None) -> Matrix:
     if report.problems:
         raise MatrixError(report.problems)
     return matrix
-
-
-def _vocabulary(data: dict[str, Any]) -> Vocabulary | None:
-    """The installed backends' vocabulary when the matrix needs it: a precision or target beyond the built-in
-    ones (on the axes, in include or exclude), or backend_options; else None (nothing imported)."""
-    named = [(axis, value) for axis in PLUGGABLE for value in _listed(data.get("axes"), axis)]
-    for section in ("include", "exclude"):
-        entries = data.get(section)
-        for entry in entries if isinstance(entries, list) else ():
-            named += [(key, entry[key]) for key in PLUGGABLE if isinstance(entry, dict) and key in entry]
-    if "backend_options" not in data and all(value in PLUGGABLE[axis] for axis, value in named):
-        return None
-    from bench_matrix.backends.registry import vocabulary
-
-    return vocabulary()
-
-
-def _listed(section: Any, key: str) -> list[Any]:
-    values = section.get(key) if isinstance(section, dict) else None
-    return values if isinstance(values, list) else []
 
 
 def _describe(error: jsonschema.ValidationError, report: Located) -> None:
@@ -170,7 +148,7 @@ def _path(base: Path, text: str, at: tuple, report: Located) -> Path | None:
 
 
 def _build(path: Path, data: dict[str, Any], lines: dict, report: Located, backends: list[str] | None,
-           vocabulary: Vocabulary | None) -> Matrix:
+           vocabulary: Vocabulary) -> Matrix:
     base = path.parent.resolve()
     dataset = load_data.dataset(base, data["dataset"], ("dataset",), report)
     models = tuple(_model(base, i, m, dataset, report) for i, m in enumerate(data["models"]))
@@ -190,7 +168,7 @@ def _build(path: Path, data: dict[str, Any], lines: dict, report: Located, backe
                 report.add(("axes", "backend", i), f"no backend '{name}' is installed; installed: "
                                                    f"{', '.join(backends)}{suggest(name, backends)}")
     known = {"model": names, "strategy": list(strategies), "backend": backends, "framework": list(FRAMEWORKS),
-             **{axis: _pluggable(axis, vocabulary) for axis in PLUGGABLE}}
+             **axis_values(vocabulary)}
     selectors = {}
     for section in ("include", "exclude"):
         selectors[section] = tuple(_selector(section, i, s, known, report) for i, s in enumerate(data.get(section, [])))
@@ -202,12 +180,6 @@ def _build(path: Path, data: dict[str, Any], lines: dict, report: Located, backe
                   exclude=selectors["exclude"], settings=Settings(**data.get("settings", {})),
                   backend_options=options, metrics=tuple(data.get("metrics", ())), closed_loop=closed,
                   lines=lines)
-
-
-def _pluggable(axis: str, vocabulary: Vocabulary | None) -> list[str]:
-    """The values an axis allows: the built-in ones, then those installed backends declare."""
-    declared = getattr(vocabulary, axis + "s", {}) if vocabulary else {}
-    return list(PLUGGABLE[axis]) + sorted(set(declared) - set(PLUGGABLE[axis]))
 
 
 def _check_metrics(names: list[str], report: Located) -> None:

@@ -14,11 +14,10 @@ from bench_matrix.workload.driving.points import MAX_COORDINATE
 from bench_matrix.workload.driving.simulator import MODES
 
 if TYPE_CHECKING:
-    from bench_matrix.backends.registry import Vocabulary
+    from bench_matrix.registry import Vocabulary
 
 FRAMEWORKS = ("pytorch", "tensorflow", "onnx")
 PRECISIONS = ("fp32", "fp16", "bf16", "int8")
-TARGETS = ("cpu", "cuda", "tensorrt")
 BUILTIN_MODELS = ("pilotnet", "pilotnet_jderobot")
 BUILTIN_FRAMEWORKS = ("pytorch", "tensorflow")  # each built-in model exists in both
 BUILTIN_DATASETS = ("driving", "driving_bends")
@@ -314,7 +313,8 @@ SCHEMA: dict[str, Any] = {
                 "backend": _axis({"type": "string"}),
                 "strategy": _axis({"type": "string"}),
                 "precision": _axis({"enum": list(PRECISIONS)}),
-                "target": _axis({"enum": list(TARGETS)}),
+                "target": _axis({"type": "string", "description": "a target an installed backend declares "
+                                                                  "(bench-matrix backends lists them)"}),
             },
         },
         "backend_options": {"type": "object", "description": "each backend's own options, by backend name",
@@ -348,15 +348,21 @@ SCHEMA: dict[str, Any] = {
 }
 
 
+def axis_values(vocabulary: "Vocabulary") -> dict[str, list[str]]:
+    """What the precision and target axes allow: the built-in precisions, then those the installed backends
+    add; the targets the installed backends declare."""
+    return {"precision": list(PRECISIONS) + sorted(set(vocabulary.precisions) - set(PRECISIONS)),
+            "target": list(vocabulary.targets)}
+
+
 def installed_schema(vocabulary: "Vocabulary", metrics: Sequence[str] = ()) -> dict[str, Any]:
     """SCHEMA extended with what the installed plugins declare: their targets and precisions on the axes, each
     backend's own options under backend_options, and the installed metric plugins."""
     schema = copy.deepcopy(SCHEMA)
     properties = schema["properties"]
     axes = properties["axes"]["properties"]
-    for axis, builtin, declared in (("precision", PRECISIONS, vocabulary.precisions),
-                                    ("target", TARGETS, vocabulary.targets)):
-        axes[axis]["items"]["enum"] = list(builtin) + sorted(set(declared) - set(builtin))
+    for axis, values in axis_values(vocabulary).items():
+        axes[axis]["items"] = {"enum": values}
     backends = {name: {"type": "object", "additionalProperties": False, "properties": options,
                        **({} if options else {"x-message": f"backend {name} declares no options"})}
                 for name, options in vocabulary.options.items()}

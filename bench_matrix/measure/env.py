@@ -12,6 +12,8 @@ from bench_matrix import __version__
 from bench_matrix.hardware import nvidia_gpus
 from bench_matrix.measure.affinity import allowed_cpus, cpu_frequency_state
 
+# Known libraries recorded with every result and in every cell's fingerprint (a backend lists its own in
+# versions())
 LIBRARIES = ("numpy", "torch", "onnx", "onnxruntime", "onnxruntime-gpu", "tensorflow", "tensorflow-cpu",
              "tf-keras", "tensorflow-model-optimization", "ai-edge-litert", "tf2onnx", "tensorrt",
              "torch-tensorrt")

@@ -14,9 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.sources.tensorflow import keras, tensorflow
-from bench_matrix.strategies.base import training_arrays
-from bench_matrix.tensors import Inputs, TensorSpec
+from bench_matrix.plugin import Inputs, TensorSpec, keras, tensorflow, training_arrays
 
 LOSSES = {"regression": "mse", "classification": "cross_entropy"}
 

@@ -22,16 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.matrix.schema import QAT_KINDS
-from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.plugin import QAT_KINDS, FineTuned, FineTuneRequest, StrategySpec, Trainer, \
+    installed_versions, keras, tensorflow, weight_stats
 from bench_matrix.sources.keras_qat import QAT_FORMAT, qat_custom_objects, tfmot_module
-from bench_matrix.sources.tensorflow import keras, tensorflow
-from bench_matrix.strategies.base import (
-    FineTuned,
-    FineTuneRequest,
-    Trainer,
-    weight_stats,
-)
 from bench_matrix.strategies.keras_fit import LOSSES, TrainingData, fit, training_data
 from bench_matrix.strategies.tfmot_models import QAT_FILE, is_weighted, stored_kernels
 from bench_matrix.strategies.tfmot_ranges import init_activation_ranges, observed_ranges
@@ -103,8 +96,6 @@ class TfmotTrainer(Trainer):
     revision = 3
 
     def versions(self) -> dict[str, str]:
-        from bench_matrix.measure.env import installed_versions
-
         return installed_versions("tensorflow", "tensorflow-cpu", "tf-keras", "tensorflow-model-optimization")
 
     def probe(self) -> str | None:

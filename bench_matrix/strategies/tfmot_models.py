@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.sources.tensorflow import keras
+from bench_matrix.plugin import keras
 
 __all__ = ["QAT_FILE", "is_weighted", "stored_kernels"]
 

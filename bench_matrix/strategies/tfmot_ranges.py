@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.sources.tensorflow import keras
+from bench_matrix.plugin import keras
 from bench_matrix.strategies.keras_fit import TrainingData
 
 # Activation range variables: NAME_min and NAME_max; a QuantizeLayer's are named after the layer

@@ -14,10 +14,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bench_matrix.matrix.spec import StrategySpec
-from bench_matrix.measure.env import installed_versions
-from bench_matrix.strategies.base import FineTuned, FineTuneRequest, Trainer, training_arrays, weight_stats
-from bench_matrix.tensors import Inputs, TensorSpec
+from bench_matrix.plugin import FineTuned, FineTuneRequest, Inputs, StrategySpec, TensorSpec, Trainer, \
+    installed_versions, quiet_torch, training_arrays, use_engine, weight_stats
 
 if TYPE_CHECKING:
     import torch
@@ -339,8 +337,6 @@ def _qat(module: nn.Module, options: dict[str, Any], data: _Data, generator: tor
 
     import torch
     from torch.ao.quantization.quantize_fx import convert_fx, prepare_qat_fx
-
-    from bench_matrix.sources.pytorch import quiet_torch, use_engine
 
     engine = use_engine()
     example = tuple(t[:2] for t in data.inputs)

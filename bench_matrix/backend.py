@@ -14,6 +14,10 @@ from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.sources import SourceModel
 from bench_matrix.tensors import Inputs
 
+# Where a target runs: the host's CPU (the default), or an NVIDIA GPU through CUDA, whose cells are also timed
+# end to end (host arrays in, outputs fetched), record the GPU's name and memory, and get a GPU share on Ray.
+DEVICES = ("cpu", "cuda")
+
 
 @dataclass(frozen=True)
 class Support:
@@ -46,7 +50,7 @@ class ConvertRequest:
     # Files derived from this source alone (e.g. its fp32 export), reusable by every conversion of it with this
     # backend and these library versions; None: nothing is shared.
     shared_dir: Path | None = None
-    # The largest batch the cell runs (latency runs batch 1): ahead-of-time engines (TensorRT) cover 1..max_batch.
+    # The largest batch the cell runs (latency runs batch 1): ahead-of-time engines cover 1..max_batch.
     max_batch: int = 1
     # This backend's own options from the matrix (`backend_options`), validated against Backend.options;
     # whatever `load` needs of them goes into the returned metadata.
@@ -92,6 +96,11 @@ class Backend(ABC):
     # built-in ones are declared simply by naming them in `supports`.
     options: ClassVar[dict[str, Any]] = {}
     revision: ClassVar[int] = 1  # raise it when the conversion changes: cached artifacts are then redone
+    devices: ClassVar[dict[str, str]] = {}  # target -> the device it runs on (one of DEVICES); unnamed: cpu
+
+    def device(self, target: str) -> str:
+        """The device `target` runs on, as `devices` declares it (cpu when it does not name the target)."""
+        return self.devices.get(target, "cpu")
 
     def versions(self) -> dict[str, str]:
         """Versions of the libraries this backend uses (in the artifact cache key and in each record's `env`)."""

@@ -6,9 +6,10 @@ from dataclasses import dataclass, field
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
-from bench_matrix.backends.base import Backend
+from bench_matrix.backend import Backend
 
 ENTRY_POINT_GROUP = "bench_matrix.backends"
+OWN_DISTRIBUTION = "bench-matrix"  # registers the built-in backends (the bench_matrix_backends package)
 
 
 class BackendLoadError(Exception):
@@ -17,11 +18,16 @@ class BackendLoadError(Exception):
 
 @dataclass(frozen=True)
 class BackendEntry:
-    """A registered backend before it is imported: its name, target and distribution."""
+    """A registered backend before it is imported: its name, target and distribution ("NAME VERSION")."""
 
     name: str
     value: str
     distribution: str
+
+    @property
+    def builtin(self) -> bool:
+        """Whether bench-matrix registers it itself."""
+        return self.distribution.split(" ", 1)[0] == OWN_DISTRIBUTION
 
 
 def available() -> dict[str, BackendEntry]:
@@ -35,7 +41,8 @@ def available() -> dict[str, BackendEntry]:
 @dataclass(frozen=True)
 class Vocabulary:
     """What the installed backends declare: each target and precision with the backends naming it, each
-    backend's own options (JSON Schema properties), and the backends that cannot be loaded, with why."""
+    backend's own options (JSON Schema properties), and the backends that cannot be loaded, with why. The
+    targets come in the order the built-in backends, by name, first declare them, then plugins' sorted."""
 
     targets: dict[str, list[str]]
     precisions: dict[str, list[str]]
@@ -49,11 +56,12 @@ def vocabulary() -> Vocabulary:
     precisions: dict[str, list[str]] = {}
     options: dict[str, dict[str, Any]] = {}
     broken: dict[str, str] = {}
-    for name in available():
+    entries = available()
+    for name in sorted(entries, key=lambda n: not entries[n].builtin):  # the built-in ones first, by name
         try:
             cls = backend_class(name)
-            declared = {"targets": {t for s in cls.supports for t in s.targets},
-                        "precisions": {p for s in cls.supports for p in s.precisions}}
+            declared = {"targets": dict.fromkeys(t for s in cls.supports for t in s.targets),
+                        "precisions": dict.fromkeys(p for s in cls.supports for p in s.precisions)}
             problem = _options_problem(cls.options)
         except Exception as exc:  # a broken plugin must not take the tool down
             broken[name] = str(exc) if isinstance(exc, BackendLoadError) else f"{type(exc).__name__}: {exc}"
@@ -62,10 +70,12 @@ def vocabulary() -> Vocabulary:
             broken[name] = f"its options are not a valid JSON Schema: {problem}"
             continue
         for found, values in ((targets, declared["targets"]), (precisions, declared["precisions"])):
-            for value in sorted(values):
+            for value in values:
                 found.setdefault(value, []).append(name)
         options[name] = dict(cls.options)
-    return Vocabulary(targets, precisions, options, broken)
+    builtin = [t for t, names in targets.items() if any(entries[n].builtin for n in names)]
+    ordered = {t: targets[t] for t in builtin + sorted(set(targets) - set(builtin))}
+    return Vocabulary(ordered, precisions, options, broken)
 
 
 def _options_problem(options: Any) -> str | None:
