@@ -119,7 +119,7 @@ def _values(args: argparse.Namespace, keys: tuple[str, ...]) -> dict[str, frozen
 
 
 def _selected(args: argparse.Namespace):
-    from bench_matrix.runner import Filters
+    from bench_matrix.selection import Filters
 
     return Filters(_values(args, FILTER_KEYS))
 
@@ -170,7 +170,8 @@ def _load(args: argparse.Namespace):
 def _run(args: argparse.Namespace, console) -> int:
     from bench_matrix.executors import open_executor
     from bench_matrix.plan import resolve
-    from bench_matrix.runner import Runner, Shard
+    from bench_matrix.runner import Runner
+    from bench_matrix.selection import Shard
     from bench_matrix.store import ResultStore
 
     shard = Shard.parse(args.shard) if args.shard is not None else Shard()
@@ -187,7 +188,7 @@ def _run(args: argparse.Namespace, console) -> int:
         with connecting if args.executor == "ray" else contextlib.nullcontext():
             executor = open_executor(args.executor, ws, args.address)
         plan = resolve(matrix, ws)
-        counts = Runner(plan, ws, store, console, args.label, executor, shard).run(filters, args.force)
+        counts = Runner(plan, ws, store, executor, console, args.label, shard).run(filters, args.force)
     finally:
         store.close()
         if executor is not None:

@@ -4,7 +4,6 @@ anything runs are a MatrixError (exit 2)."""
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -12,20 +11,19 @@ from typing import Any
 from bench_matrix import __version__, data
 from bench_matrix.cell import Cell, CellPlan, ClosedLoopPlan
 from bench_matrix.errors import MatrixError, UserError
+from bench_matrix.executors.local import probe_here
 from bench_matrix.jobs import ProbeJob
-from bench_matrix.launcher import run_job
+from bench_matrix.jobs.results import Probe
 from bench_matrix.matrix.closed_loop import drive_problem
-from bench_matrix.matrix.expand import Verdict, combinations, plan, training_key, verdict_key
+from bench_matrix.matrix.expand import combinations, judge, training_key, verdict_key
 from bench_matrix.matrix.spec import DatasetSpec, Matrix, ModelSpec
 from bench_matrix.matrix.yamlpos import format_path
 from bench_matrix.measure import env as environment
 from bench_matrix.registry import available
 from bench_matrix.sources.code import model_code
-from bench_matrix.sources.forward_call import Parameter, call_problem
-from bench_matrix.tensors import TensorSpec, binding_problem, specs_from_list
+from bench_matrix.sources.forward_call import call_problem
+from bench_matrix.tensors import TensorSpec, binding_problem
 from bench_matrix.workspace import Workspace, digest, file_sha256, tree_sha256
-
-PROBE_TIMEOUT_S = 300.0
 
 
 @dataclass(frozen=True)
@@ -57,9 +55,25 @@ class Plan:
 
 
 def resolve(matrix: Matrix, workspace: Workspace) -> Plan:
-    """Expand the matrix and judge every combination in a child process (imports stay out of the parent)."""
+    """Expand the matrix and judge every combination in a child process on this machine (imports stay out of
+    the parent)."""
     installed = list(available())
     cells, excluded = combinations(matrix, installed)
+    probe = _probe(matrix, cells, installed, workspace)
+    baselines = probe.baselines()
+    expansion = judge(matrix, cells, excluded, probe.verdicts, probe.trainers, baselines)
+    models = {m.name: _model_plan(matrix, m, probe.inputs, baselines, workspace) for m in matrix.models}
+    _check_models(matrix, models, probe)
+    prints = Fingerprints(matrix, probe.backends)
+    driven = (replace(p, log=workspace.cell_log(p.cell.key), closed_loop=closed_loop_plan(matrix, p.cell))
+              for p in expansion.cells)
+    decided = tuple(replace(p, fingerprint=prints.cell(p)) for p in driven)
+    return Plan(matrix, decided, models, excluded, probe.backends)
+
+
+def _probe(matrix: Matrix, cells: list[Cell], installed: list[str], workspace: Workspace) -> Probe:
+    """The probe of the cells' combinations and fine-tunings, the model files' inputs and the parameters of
+    several-input factories' forward."""
     keys = tuple(sorted({verdict_key(matrix, c) for c in cells}))
     training = tuple(sorted({k for c in cells if (k := training_key(matrix, c))}))
     files = tuple(sorted({(m.framework, m.source_format, str(m.file)) for m in matrix.models
@@ -67,22 +81,10 @@ def resolve(matrix: Matrix, workspace: Workspace) -> Plan:
     names = tuple(sorted(set(installed) | {k[0] for k in keys}))
     factories = tuple(sorted({(m.factory, tuple(map(str, m.python_path))) for m in matrix.models
                               if m.factory and _several_inputs(matrix, m)}))
-    outcome = run_job(ProbeJob(workspace, names, keys, training, files, factories), workspace.jobs,
-                      workspace.log("probe"), PROBE_TIMEOUT_S)
-    if not outcome.ok:
-        raise UserError(f"probing the installed backends failed: {outcome.error}")
-    probed = outcome.value
-    verdicts = {tuple(json.loads(k)): Verdict(**v) for k, v in probed["verdicts"].items()}
-    trainers = {tuple(json.loads(k)): Verdict(**v) for k, v in probed["trainers"].items()}
-    baselines = {f: n for n, b in sorted(probed["backends"].items()) for f in b.get("baseline_for", [])}
-    expansion = plan(matrix, cells, excluded, verdicts, trainers, baselines)
-    models = {m.name: _model_plan(matrix, m, probed["inputs"], baselines, workspace) for m in matrix.models}
-    _check_models(matrix, models, probed["forwards"])
-    prints = Fingerprints(matrix, probed["backends"])
-    driven = (replace(p, log=workspace.cell_log(p.cell.key), closed_loop=closed_loop_plan(matrix, p.cell))
-              for p in expansion.cells)
-    decided = tuple(replace(p, fingerprint=prints.cell(p)) for p in driven)
-    return Plan(matrix, decided, models, excluded, probed["backends"])
+    ended = probe_here(ProbeJob(workspace, names, keys, training, files, factories))
+    if not ended.ok:
+        raise UserError(f"probing the installed backends failed: {ended.error}")
+    return ended.result
 
 
 def closed_loop_plan(matrix: Matrix, cell: Cell) -> ClosedLoopPlan | None:
@@ -95,10 +97,10 @@ def closed_loop_plan(matrix: Matrix, cell: Cell) -> ClosedLoopPlan | None:
     return ClosedLoopPlan(spec, dataset.labels, drive_problem(model, dataset, matrix.task_of(model)))
 
 
-def _model_plan(matrix: Matrix, model: ModelSpec, read: dict[str, Any], baselines: dict[str, str],
-                workspace: Workspace) -> ModelPlan:
-    found = read.get(str(model.file), {}).get("inputs") if model.file is not None else None
-    inputs = model.inputs or (specs_from_list(found) if found else None)
+def _model_plan(matrix: Matrix, model: ModelSpec, read: dict[str, tuple[TensorSpec, ...] | None],
+                baselines: dict[str, str], workspace: Workspace) -> ModelPlan:
+    found = read.get(str(model.file)) if model.file is not None else None
+    inputs = model.inputs or found or None
     backend = baselines.get(model.framework)
     baseline = Cell(model.name, model.framework, backend, "none", "fp32", "cpu") if backend else None
     dataset = replace(matrix.dataset_of(model), task=matrix.task_of(model))  # the task decides the labels
@@ -124,7 +126,7 @@ def _several_inputs(matrix: Matrix, model: ModelSpec) -> bool:
     return len(model.inputs or data.describe(matrix.dataset_of(model), model.layout) or ()) > 1
 
 
-def _check_models(matrix: Matrix, models: dict[str, ModelPlan], forwards: dict[str, Any]) -> None:
+def _check_models(matrix: Matrix, models: dict[str, ModelPlan], probe: Probe) -> None:
     """Inputs the data cannot feed or a factory's forward cannot take, synthetic data for a model whose inputs
     nobody declared: exit 2, located."""
     problems = []
@@ -138,7 +140,7 @@ def _check_models(matrix: Matrix, models: dict[str, ModelPlan], forwards: dict[s
             continue
         described = data.describe(planned.dataset, m.layout)
         names = [spec.name for spec in planned.inputs] if planned.inputs else list(described or ())
-        problem = _forward_problem(m, names, forwards)
+        problem = _forward_problem(m, names, probe)
         if planned.inputs is not None and described is not None:
             problem = binding_problem(described, planned.inputs) or problem
         if problem:
@@ -148,12 +150,12 @@ def _check_models(matrix: Matrix, models: dict[str, ModelPlan], forwards: dict[s
                            for at, message in problems])
 
 
-def _forward_problem(model: ModelSpec, names: list[str], forwards: dict[str, Any]) -> str | None:
+def _forward_problem(model: ModelSpec, names: list[str], probe: Probe) -> str | None:
     """Why the factory's forward (its parameters as the probe read them) cannot take these inputs, or None."""
-    params = forwards.get(model.factory or "")
+    params = probe.forwards.get(model.factory or "")
     if not params or not names:
         return None
-    return call_problem(model.factory or "", [Parameter(**p) for p in params], names, bool(model.inputs))
+    return call_problem(model.factory or "", params, names, bool(model.inputs))
 
 
 def _line(matrix: Matrix, at: tuple) -> int:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from rich.console import Console
@@ -11,11 +10,13 @@ from rich.padding import Padding
 from rich.table import Table
 
 from bench_matrix.cell import CellPlan
+from bench_matrix.executors.local import probe_here
 from bench_matrix.jobs import ProbeJob
-from bench_matrix.launcher import run_job
-from bench_matrix.plan import PROBE_TIMEOUT_S, Plan
+from bench_matrix.matrix.expand import Verdict, VerdictKey
+from bench_matrix.measure import env as environment
+from bench_matrix.plan import Plan
 from bench_matrix.registry import available, vocabulary
-from bench_matrix.runner import Filters, Runner
+from bench_matrix.selection import Filters
 from bench_matrix.store import ResultStore
 from bench_matrix.workspace import Workspace
 
@@ -29,7 +30,7 @@ def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, res
     filters.check([p.cell for p in plan.cells])
     results = results or ws.results
     store = ResultStore(results, readonly=True) if results.is_file() else None
-    runner = Runner(plan, ws, store, console) if store else None
+    here, passes = {environment.host_name()}, plan.matrix.settings.passes
     cells = [p for p in plan.cells if filters.keep(p.cell)]
     table = Table(title=f"cells of {plan.matrix.path}")
     driving = plan.matrix.closed_loop is not None
@@ -38,7 +39,8 @@ def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, res
         table.add_column(column, overflow="fold")
     counts = {"run": 0, "stored": 0, "skip": 0, "invalid": 0}
     for p in sorted((p for p in cells if p.state != "invalid"), key=lambda p: (p.state, p.cell)):
-        state = "stored" if p.state == "run" and runner and runner.is_done(p) else p.state
+        stored = p.state == "run" and store is not None and store.is_done(p.cell, p.fingerprint, here, passes)
+        state = "stored" if stored else p.state
         counts[state] += 1
         c = p.cell
         table.add_row(c.model, c.backend, c.strategy, c.precision, c.target, STATE_STYLE[state],
@@ -91,11 +93,11 @@ def show_backends(console: Console, ws: Workspace) -> None:
     """Every installed backend: its package, what it supports, and per installed target whether this machine
     runs it."""
     entries = available()
-    outcome = run_job(ProbeJob(ws, tuple(entries)), ws.jobs, ws.log("probe"), PROBE_TIMEOUT_S)
-    if not outcome.ok:
-        console.print(f"[red]probing the backends failed:[/] {escape(outcome.error or '')}")
+    ended = probe_here(ProbeJob(ws, tuple(entries)))
+    if not ended.ok:
+        console.print(f"[red]probing the backends failed:[/] {escape(ended.error or '')}")
         return
-    described, verdicts = outcome.value["backends"], outcome.value["verdicts"]
+    described, verdicts = ended.result.backends, ended.result.verdicts
     targets = list(vocabulary().targets)
     for name, entry in entries.items():
         info = described[name]
@@ -118,11 +120,9 @@ def show_backends(console: Console, ws: Workspace) -> None:
         console.print(Padding(grid, (0, 0, 1, 2)))
 
 
-def _target_status(backend: str, target: str, verdicts: dict[str, dict]) -> str:
+def _target_status(backend: str, target: str, verdicts: dict[VerdictKey, Verdict]) -> str:
     """ready / not supported / the skip reasons, with the precisions they concern."""
-    keys = {key: json.loads(key) for key in verdicts}
-    mine = {keys[key][3]: v["skip"] for key, v in verdicts.items()
-            if keys[key][0] == backend and keys[key][4] == target}
+    mine = {key[3]: v.skip for key, v in verdicts.items() if key[0] == backend and key[4] == target}
     if not mine:
         return "[dim]not supported[/]"
     blocked = {}

@@ -215,6 +215,18 @@ class ResultStore:
                             (cell.key, host))
         return rows[0] if rows else None
 
+    def latest_on(self, cell: Cell, hosts: set[str]) -> CellRecord | None:
+        """The newest record of `cell` on any of `hosts`, from any run."""
+        found = [r for host in sorted(hosts) if (r := self.latest(cell, host))]
+        return max(found, key=lambda r: (r.finished_at or r.started_at or "", r.id or 0), default=None)
+
+    def is_done(self, cell: Cell, fingerprint: str, hosts: set[str], passes: int) -> bool:
+        """Whether the newest record of the cell on `hosts` is an ok one of this fingerprint, every pass
+        made."""
+        record = self.latest_on(cell, hosts)
+        return (record is not None and record.status == "ok" and record.fingerprint == fingerprint
+                and len(record.metrics.get("latency_passes_p50", [0])) >= passes)
+
     def records(self, run: int | None = None) -> list[CellRecord]:
         """The records of one run, or (by default) the newest record of every cell on every host."""
         if run is not None:

@@ -30,7 +30,7 @@ class Workspace:
 
     @property
     def jobs(self) -> Path:
-        """Job and result files exchanged with worker processes (removed as each job ends)."""
+        """Job and result files exchanged with job processes (removed as each job ends)."""
         return self.root / "jobs"
 
     def datasets(self, fingerprint: str) -> Path:

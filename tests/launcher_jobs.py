@@ -1,4 +1,4 @@
-"""Typed jobs for the launcher tests, run in a child process through their `module:function` modes."""
+"""Typed jobs for the process tests, each run in a child process by the `module:function` its class names."""
 
 from __future__ import annotations
 
@@ -8,29 +8,33 @@ import time
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from bench_matrix.worker import phase
+from bench_matrix.executors.child import phase
 
 
 @dataclass(frozen=True)
 class AbortJob:
-    mode: ClassVar[str] = "launcher_jobs:abort"
+    function: ClassVar[str] = "launcher_jobs:abort"
+    result: ClassVar[Any] = Any
 
 
 @dataclass(frozen=True)
 class FailJob:
-    mode: ClassVar[str] = "launcher_jobs:fail"
+    function: ClassVar[str] = "launcher_jobs:fail"
+    result: ClassVar[Any] = Any
 
 
 @dataclass(frozen=True)
 class SleepJob:
     seconds: float
-    mode: ClassVar[str] = "launcher_jobs:sleep"
+    function: ClassVar[str] = "launcher_jobs:sleep"
+    result: ClassVar[Any] = Any
 
 
 @dataclass(frozen=True)
 class EchoJob:
     value: Any
-    mode: ClassVar[str] = "launcher_jobs:echo"
+    function: ClassVar[str] = "launcher_jobs:echo"
+    result: ClassVar[Any] = Any
 
 
 def abort(job: AbortJob):

@@ -1,6 +1,7 @@
 """A third-party backend for the real-time closed-loop and the compare tests: ONNX Runtime with a fixed delay
-added to every inference, an artificially slowed brain (as a slow target would be) or a planted regression;
-installed as a .dist-info with an entry point, like tests/plugin_npu.py."""
+added to every inference, an artificially slowed brain (as a slow target would be) or a planted regression,
+and for the interrupted-run tests a gate that holds every session after a run's first; installed as a
+.dist-info with an entry point, like tests/plugin_npu.py."""
 
 from __future__ import annotations
 
@@ -17,6 +18,8 @@ from bench_matrix_backends.onnxruntime import OnnxRuntimeBackend
 # from about 0.2 s on, the late commands visibly worsen the driving (docs/closed-loop.md); $SLOW_ORT_DELAY_MS
 # sets another delay (0: none)
 DELAY_S = float(os.environ.get("SLOW_ORT_DELAY_MS", "250")) / 1e3
+# a directory: the first session loads at once, each later one writes GATE/waiting-PID and waits for GATE/open
+GATE = os.environ.get("SLOW_ORT_GATE")
 
 
 class SlowOrtBackend(OnnxRuntimeBackend):
@@ -28,7 +31,21 @@ class SlowOrtBackend(OnnxRuntimeBackend):
 
     def load(self, artifact_dir: Path, meta: dict[str, Any], target: str, precision: str,
              threads: int) -> Session:
+        if GATE:
+            _pass(Path(GATE))
         return SlowSession(super().load(artifact_dir, meta, target, precision, threads))
+
+
+def _pass(gate: Path) -> None:
+    """Through the gate: at once for the first session that comes, once GATE/open exists for the others."""
+    try:
+        os.close(os.open(gate / "first", os.O_CREAT | os.O_EXCL))
+        return
+    except FileExistsError:
+        (gate / f"waiting-{os.getpid()}").touch()
+    deadline = time.monotonic() + 600  # a test that failed before opening it leaves no child behind for ever
+    while not (gate / "open").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
 
 
 class SlowSession(Session):

@@ -6,6 +6,7 @@ import json
 import os
 import signal
 import sqlite3
+import subprocess
 import time
 from pathlib import Path
 
@@ -14,7 +15,8 @@ import pytest
 
 from bench_matrix.cell import Cell
 from bench_matrix.store import ResultStore
-from conftest import TESTS, cli, matrix_text, onnx_matrix_text, popen_cli
+from conftest import TESTS, cli, install_slow_plugin, matrix_text, onnx_matrix_text, popen_cli
+from polling import wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -121,41 +123,50 @@ def _workers_of(workspace: Path) -> list[int]:
             cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
         except (OSError, ValueError):
             continue
-        if "bench_matrix.worker" in cmd and str(workspace) in cmd:
+        if "bench_matrix.executors.child" in cmd and str(workspace) in cmd:
             found.append(int(entry.name))
     return found
 
 
-# four ONNX cells, each timed for a second: the run is still going when the first record lands (with the fast
-# settings the last three cells ended before a signal sent then arrived)
-INTERRUPTIBLE = onnx_matrix_text(["tiny", "twin"], ["fp32", "fp16"]).replace("min_time_s: 0.02", "min_time_s: 1.0")
+# four ONNX cells through tests/plugin_slow.py with no delay, its gate holding every session after the first:
+# the run is certainly in its second cell, its measuring child waiting, when it is interrupted
+INTERRUPTIBLE = onnx_matrix_text(["tiny", "twin"], ["fp32", "fp16"]).replace("[onnxruntime]", "[slow_ort]")
+
+
+def _start_gated_run(project: Path) -> tuple[subprocess.Popen, dict[str, str]]:
+    """`run` of INTERRUPTIBLE once its first cell is stored and its second waits at the gate; the env of a run
+    without the gate."""
+    gate = project / "gate"
+    gate.mkdir()
+    env = {**install_slow_plugin(project), "SLOW_ORT_DELAY_MS": "0"}
+    (project / "m.yaml").write_text(INTERRUPTIBLE)
+    proc = popen_cli(project, "run", "m.yaml", env={**env, "SLOW_ORT_GATE": str(gate)})
+    _wait_for_ok_record(project / "ws" / "results.sqlite", proc)
+    wait_for(lambda: list(gate.glob("waiting-*")), "the second cell waiting at the gate")
+    return proc, env
 
 
 def test_killed_run_keeps_finished_cells_and_resumes(onnx_project):
-    (onnx_project / "m.yaml").write_text(INTERRUPTIBLE)
     db = onnx_project / "ws" / "results.sqlite"
-    proc = popen_cli(onnx_project, "run", "m.yaml")
-    _wait_for_ok_record(db, proc)
+    proc, env = _start_gated_run(onnx_project)
+    assert _workers_of(onnx_project / "ws")  # the second cell's, at the gate
     proc.kill()  # SIGKILL: no chance to clean up
     proc.wait()
-    time.sleep(1.0)
-    assert _workers_of(onnx_project / "ws") == []  # children die with their parent
+    wait_for(lambda: _workers_of(onnx_project / "ws") == [], "children dying with their parent", timeout_s=30)
     with sqlite3.connect(db) as con:
         kept = dict(con.execute("SELECT key, finished_at FROM records WHERE status = 'ok'").fetchall())
-    assert 1 <= len(kept) < 4
+    assert len(kept) == 1
 
-    rerun = cli(onnx_project, "run", "m.yaml")
+    rerun = cli(onnx_project, "run", "m.yaml", env=env)
     assert rerun.returncode == 0, rerun.stdout + rerun.stderr
-    assert f"{4 - len(kept)} ok" in rerun.stdout and f"{len(kept)} already stored" in rerun.stdout
+    assert "3 ok" in rerun.stdout and "1 already stored" in rerun.stdout
     with sqlite3.connect(db) as con:
         after = dict(con.execute("SELECT key, finished_at FROM records WHERE status = 'ok'").fetchall())
     assert len(after) == 4 and all(after[k] == v for k, v in kept.items())  # finished cells were not re-run
 
 
 def test_ctrl_c_stops_cleanly_with_exit_130(onnx_project):
-    (onnx_project / "m.yaml").write_text(INTERRUPTIBLE)
-    proc = popen_cli(onnx_project, "run", "m.yaml")
-    _wait_for_ok_record(onnx_project / "ws" / "results.sqlite", proc)
+    proc, _ = _start_gated_run(onnx_project)
     proc.send_signal(signal.SIGINT)
     output, _ = proc.communicate(timeout=60)
     assert proc.returncode == 130

@@ -126,16 +126,29 @@ def test_trained_pilotnet_completes_the_default_circuit_deterministically(traine
     assert driving(second) == driving(first)
 
 
+def slowest_rate(lap: dict) -> float:
+    """The lowest brain rate real time allows for a lap's measured brain times: a step lasts its period plus
+    at most its brain time and latency budget (docs/closed-loop.md), however long the machine made them."""
+    return 1e3 / (lap["brain_period_ms"] + lap["latency_budget_ms"] + lap["brain_ms"]["mean"])
+
+
 @pytest.mark.slow
 def test_a_slowed_brain_drives_worse_in_real_time(trained: Path) -> None:
+    """The slowed brain's commands come at least SLOW_MS late however busy the machine; the reference is the
+    same model in lock-step for as long (no time passes while it thinks: the same lap on any machine)."""
     env = {**install_slow_plugin(trained), "SLOW_ORT_DELAY_MS": str(SLOW_MS)}
-    section = "closed_loop: {modes: [real_time], time_limit_s: 12}\n"
+    section = "closed_loop: {modes: [MODE], time_limit_s: 12}\n"
     # one evaluation batch: each batch costs the slowed brain its delay
-    run(trained, pilotnet_matrix("[onnxruntime, slow_ort]", section, TRAINED, 10, eval_samples=8), env=env)
+    run(trained, pilotnet_matrix("[onnxruntime]", section.replace("MODE", "lock_step"), TRAINED, 10,
+                                 eval_samples=8), env=env)
+    steady = records(trained, env)["onnxruntime"]["metrics"]["closed_loop"]["simple"]["lock_step"]
+    run(trained, pilotnet_matrix("[onnxruntime, slow_ort]", section.replace("MODE", "real_time"), TRAINED, 10,
+                                 eval_samples=8), env=env)
     found = records(trained, env)
     quick, slow = (found[backend]["metrics"]["closed_loop"]["simple"]["real_time"]
                    for backend in ("onnxruntime", "slow_ort"))
     assert slow["inference_ms"]["p50"] > SLOW_MS > 10 * quick["inference_ms"]["p50"]
-    assert slow["brain_hz"] < 2.6 < 19 < quick["brain_hz"]  # 2.4 Hz: 41 physics steps a decision
-    assert slow["completed_pct"] < quick["completed_pct"] and \
-        slow["deviation_mae_m"] > 1.3 * quick["deviation_mae_m"], (quick, slow)
+    assert slowest_rate(slow) <= slow["brain_hz"] < 2.6  # 2.4 Hz: 41 physics steps a decision
+    assert slowest_rate(quick) <= quick["brain_hz"]  # late by its own measured time, not more (~20 Hz)
+    assert slow["completed_pct"] < steady["completed_pct"] and \
+        slow["deviation_mae_m"] > 1.3 * steady["deviation_mae_m"], (steady, slow)

@@ -8,14 +8,16 @@ from pathlib import Path
 
 import pytest
 
+from bench_matrix.measure.machine_lock import LOCK_FILE
 from conftest import FAST_SETTINGS, cli, onnx_matrix_text, popen_cli
+from lock_helpers import flock_waiters, release, start_holder
+from polling import wait_for
 
 pytestmark = pytest.mark.slow
 
-# timing phases (about 0.7 s a cell) long enough that unsynchronised runs time at the same moment (given a
-# lock directory each, the runs of both tests overlapped in each of 7 tries), each shorter than
-# interference.JUDGED_FROM_S (0.4 s), so a window the other run disturbs is not measured again (three attempts
-# with pauses: 5 s a cell)
+# timing phases (about 0.7 s a cell) long enough that the runs, once both have waited for the slot, go on
+# timing at the same moment, each shorter than interference.JUDGED_FROM_S (0.4 s), so a window the other run
+# disturbs is not measured again (three attempts with pauses: 5 s a cell)
 SETTINGS = ("settings: {min_iterations: 5, min_time_s: 0.35, warmup_iterations: 2, warmup_s: 0.0, "
             "throughput_time_s: 0.35, batch_size: 8, timeout_s: 300}\n")
 CELLS = {"tiny/fp32", "tiny/fp16", "twin/fp32", "twin/fp16"}  # tiny.onnx twice, through ONNX Runtime
@@ -32,16 +34,28 @@ def stored(project: Path, workspace: str) -> list[dict]:
 
 
 def run_both(project: Path, first: list[str], second: list[str]) -> None:
-    """Start two runs at the same moment (sharing one lock directory) and wait for both to finish."""
+    """Start two runs (sharing one lock directory) while the slot is held, let it go once both wait for it (so
+    their timing phases collide, however the machine delayed either), and wait for both to finish."""
     env = {"BENCH_MATRIX_LOCK_DIR": str(project / "lock")}
+    holder = start_holder("the test", env=env)
     runs = [popen_cli(project, *args, env=env) for args in (first, second)]
+
+    def both_waiting() -> bool:
+        for proc in runs:
+            assert proc.poll() is None, proc.communicate()[0]
+        return flock_waiters(project / "lock" / LOCK_FILE) == 2
+
+    wait_for(both_waiting, "both runs waiting for the timing slot", timeout_s=300)
+    release(holder)
     outputs = [proc.communicate(timeout=600)[0] for proc in runs]
+    holder.wait(timeout=60)
     for proc, output in zip(runs, outputs):
         assert proc.returncode == 0, output
 
 
 def assert_never_overlapping(records: list[dict]) -> None:
-    """The ok records' timing windows, in time order, each end before the next starts; someone waited."""
+    """The ok records' timing windows, in time order, each end before the next starts; someone waited (for the
+    other run's window: `run_both` has both wait for the slot at once)."""
     windows = sorted((r["metrics"]["timing_window"]["start"], r["metrics"]["timing_window"]["end"],
                       r["cell"]["backend"]) for r in records if r["status"] == "ok")
     assert len(windows) == len(records)

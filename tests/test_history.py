@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from bench_matrix.measure.interference import JUDGED_FROM_S
 from conftest import FAST_SETTINGS, cli, install_slow_plugin, matrix_text
 
 FORMAT_1 = Path(__file__).parent / "data" / "store-format-1.sqlite"
@@ -24,17 +25,30 @@ def _records(project: Path, *args: str) -> list[dict]:
     return json.loads(_ok(cli(project, "report", "--format", "json", *args)))
 
 
+# the planted regression: a sleep inside the timed call, so its p50 is at least this however busy the machine
+PLANTED_MS = 3
+# windows shorter than /proc/stat can judge: never flagged for interference, so a busy machine cannot make the
+# planted regression "not comparable"
+UNJUDGED = f"max_time_s: {JUDGED_FROM_S / 2:g}}}"
+
+
 def test_compare_flags_a_planted_regression_and_keeps_every_run(tiny_project, tmp_path):
     env = install_slow_plugin(tmp_path)
-    (tiny_project / "m.yaml").write_text(matrix_text(["onnxruntime", "slow_ort"], ["none"], ["fp32"], ["cpu"]))
+    text = matrix_text(["onnxruntime", "slow_ort"], ["none"], ["fp32"], ["cpu"])
+    text = text.replace("max_time_s: 2}", UNJUDGED)
+    assert UNJUDGED in text
+    (tiny_project / "m.yaml").write_text(text)
     _ok(cli(tiny_project, "run", "m.yaml", "--label", "before", env={**env, "SLOW_ORT_DELAY_MS": "0"}))
-    _ok(cli(tiny_project, "run", "m.yaml", "--force", "--label", "after", env={**env, "SLOW_ORT_DELAY_MS": "3"}))
+    _ok(cli(tiny_project, "run", "m.yaml", "--force", "--label", "after",
+            env={**env, "SLOW_ORT_DELAY_MS": str(PLANTED_MS)}))
 
     runs = _ok(cli(tiny_project, "runs", env=env))
     assert "before" in runs and "after" in runs
     before = {r["cell"]["backend"]: r for r in _records(tiny_project, "--run", "before")}
     latest = {r["cell"]["backend"]: r for r in _records(tiny_project)}
-    assert before["slow_ort"]["metrics"]["latency_ms"]["p50"] < 2 < latest["slow_ort"]["metrics"]["latency_ms"]["p50"]
+    # the tiny model's median call takes ~0.01 ms: under PLANTED_MS unless slowed 300-fold
+    assert before["slow_ort"]["metrics"]["latency_ms"]["p50"] < PLANTED_MS \
+        <= latest["slow_ort"]["metrics"]["latency_ms"]["p50"]
     assert before["slow_ort"]["run"] == 1 and latest["slow_ort"]["run"] == 2  # nothing was overwritten
 
     gate = cli(tiny_project, "compare", "before", "after", "--format", "json", env=env)
@@ -56,15 +70,61 @@ STEADY = ("settings: {min_iterations: 300, min_time_s: 0.5, warmup_iterations: 2
           "throughput_time_s: 0.5, batch_size: 8, timeout_s: 120}\n")
 
 
+TIMED = ("p50", "p99", "throughput")
+VALUES = {"p50": ("latency_ms", "p50"), "p99": ("latency_ms", "p99"), "throughput": ("throughput_sps",),
+          "size": ("size_bytes",)}
+
+
+def _compare(project: Path, base: str, new: str) -> dict:
+    """`compare BASE NEW` as JSON; its exit code is 1 exactly when it lists a regression."""
+    out = cli(project, "compare", base, new, "--format", "json")
+    result = json.loads(out.stdout)
+    assert out.returncode == (1 if result["regressions"] else 0), out.stdout + out.stderr
+    return result
+
+
+def _interference(change: dict) -> bool:
+    return change["verdict"] == "not comparable" and "measured under interference" in change["why"]
+
+
+def _key(record: dict) -> str:
+    return "/".join(record["cell"][k] for k in ("model", "backend", "strategy", "precision", "target"))
+
+
+def _stored(record: dict, path: tuple[str, ...]) -> float:
+    value = record["metrics"]
+    for key in path:
+        value = value[key]
+    return value
+
+
 def test_two_runs_of_unchanged_cells_compare_unchanged(tiny_project):
+    """What nothing changed cannot make worse: size and accuracy, the pairing of records and samples, a run
+    against itself. A timed metric of two real runs may move with the machine (§3): not asserted."""
     text = matrix_text(["onnxruntime"], ["none", "ptq_dynamic"], ["fp32", "int8"], ["cpu"]).replace(
         FAST_SETTINGS, STEADY)
     (tiny_project / "m.yaml").write_text(text)
     _ok(cli(tiny_project, "run", "m.yaml"))
     _ok(cli(tiny_project, "run", "m.yaml", "--force"))
-    out = cli(tiny_project, "compare", "previous", "latest", "--format", "md")
-    assert out.returncode == 0, out.stdout + out.stderr
-    assert "0 worse" in out.stdout
+    runs = [{_key(r): r for r in _records(tiny_project, "--run", run)} for run in ("previous", "latest")]
+    pair = _compare(tiny_project, "previous", "latest")
+    assert [c["key"] for c in pair["cells"]] == sorted(runs[0]) == sorted(runs[1]) and len(runs[0]) == 2
+    for cell in pair["cells"]:
+        changes = cell["metrics"]
+        assert {name: changes[name]["verdict"] for name in ("size", "accuracy")} == \
+            {"size": "unchanged", "accuracy": "unchanged"}, cell
+        for name, path in VALUES.items():  # each side's value is its own run's record
+            stored = [_stored(run[cell["key"]], path) for run in runs]
+            assert [changes[name]["base"], changes[name]["new"]] == stored, (name, cell)
+        assert all(changes[m]["p_value"] is not None or _interference(changes[m]) for m in TIMED), cell
+    assert all(regression["metric"] in TIMED for regression in pair["regressions"]), pair["regressions"]
+
+    itself = _compare(tiny_project, "latest", "latest")
+    assert itself["summary"]["worse"] == itself["summary"]["better"] == 0, itself
+    for cell in itself["cells"]:
+        for name, change in cell["metrics"].items():
+            assert _interference(change) or (change["verdict"] == "unchanged" and change["change"] == 0), cell
+            assert name not in TIMED or _interference(change) or change["p_value"] == 1.0, cell
 
 
 def test_stores_of_two_hosts_merge_and_report_filters_by_host(tiny_project, tmp_path):

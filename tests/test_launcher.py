@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from bench_matrix.errors import UserError
-from bench_matrix.launcher import run_job
+from bench_matrix.executors.process import run_in_process
 from launcher_jobs import AbortJob, EchoJob, FailJob, SleepJob
 
 
@@ -19,14 +19,14 @@ def tests_importable(monkeypatch):
 
 
 def test_crash_without_result_reports_signal_and_log_tail(tmp_path):
-    outcome = run_job(AbortJob(), tmp_path / "jobs", tmp_path / "log.txt", timeout_s=60)
+    outcome = run_in_process(AbortJob(), tmp_path / "jobs", tmp_path / "log.txt", timeout_s=60)
     assert not outcome.ok
     assert "killed by signal SIGABRT" in outcome.error
     assert "about to abort" in outcome.error  # the log tail is part of the reason
 
 
 def test_exception_is_reported_with_its_location(tmp_path):
-    outcome = run_job(FailJob(), tmp_path / "jobs", tmp_path / "log.txt", timeout_s=60)
+    outcome = run_in_process(FailJob(), tmp_path / "jobs", tmp_path / "log.txt", timeout_s=60)
     assert not outcome.ok and outcome.error.startswith("ValueError: bad model")
     assert "launcher_jobs.py" in outcome.error
 
@@ -34,18 +34,18 @@ def test_exception_is_reported_with_its_location(tmp_path):
 def test_timeout_kills_the_child(tmp_path):
     begin = time.monotonic()
     phases = []
-    outcome = run_job(SleepJob(60), tmp_path / "jobs", tmp_path / "log.txt",
-                      timeout_s=2, on_phase=phases.append)
-    assert time.monotonic() - begin < 20
+    outcome = run_in_process(SleepJob(60), tmp_path / "jobs", tmp_path / "log.txt",
+                             timeout_s=2, on_phase=phases.append)
+    assert time.monotonic() - begin < 20  # killed, not left to sleep its 60 s: 10 times the limit's 2 s
     assert "timed out after 2 s (in phase 'measure')" in outcome.error
     assert phases == ["measure"]
 
 
 def test_value_and_phases_come_back(tmp_path):
     phases = []
-    outcome = run_job(EchoJob([1, "a"]), tmp_path / "jobs", tmp_path / "log.txt",
-                      timeout_s=60, on_phase=phases.append)
-    assert outcome.ok and outcome.value == [1, "a"]
+    outcome = run_in_process(EchoJob([1, "a"]), tmp_path / "jobs", tmp_path / "log.txt",
+                             timeout_s=60, on_phase=phases.append)
+    assert outcome.ok and outcome.result == [1, "a"]
     assert phases == ["convert", "measure"]
     assert not list((tmp_path / "jobs").iterdir())  # job files are cleaned up
 
@@ -53,15 +53,15 @@ def test_value_and_phases_come_back(tmp_path):
 
 @pytest.mark.parametrize("timeout_s", [float("inf"), 1e30, 10**400])
 def test_a_limit_too_long_for_a_timer_waits_as_long_as_needed(tmp_path, timeout_s):
-    outcome = run_job(EchoJob(7), tmp_path / "jobs", tmp_path / "log.txt",
-                      timeout_s=timeout_s)
-    assert outcome.ok and outcome.value == 7
+    outcome = run_in_process(EchoJob(7), tmp_path / "jobs", tmp_path / "log.txt",
+                             timeout_s=timeout_s)
+    assert outcome.ok and outcome.result == 7
 
 
 @pytest.mark.parametrize("timeout_s", [float("nan"), 0, -1.0])
 def test_a_limit_that_is_not_a_positive_number_is_refused_before_starting(tmp_path, timeout_s):
     with pytest.raises(UserError, match=r"a time limit must be a positive number of seconds, got .*"
                                         r"timeout_s"):
-        run_job(EchoJob(7), tmp_path / "jobs", tmp_path / "log.txt",
-                timeout_s=timeout_s)
+        run_in_process(EchoJob(7), tmp_path / "jobs", tmp_path / "log.txt",
+                       timeout_s=timeout_s)
     assert not (tmp_path / "jobs").exists()

@@ -9,7 +9,7 @@ import pytest
 
 from bench_matrix.errors import MatrixError
 from bench_matrix.matrix import load_matrix
-from bench_matrix.matrix.expand import training_key, Verdict, combinations, plan, verdict_key
+from bench_matrix.matrix.expand import training_key, Verdict, combinations, judge, verdict_key
 from bench_matrix.matrix.schema import PRECISIONS, schema_json
 from bench_matrix.matrix.spec import DatasetSpec
 
@@ -169,7 +169,7 @@ include:
             verdicts[key] = Verdict(skip="no GPU")
         else:
             verdicts[key] = Verdict()
-    expansion = plan(matrix, cells, excluded, verdicts)
+    expansion = judge(matrix, cells, excluded, verdicts)
     states = {p.cell.key: (p.state, p.reason) for p in expansion.cells}
     assert states["a/y/none/fp16/cuda"] == ("skip", "no GPU")
     assert states["a/x/none/int8/cpu"][0] == "invalid"
@@ -182,12 +182,12 @@ def test_training_strategies_need_a_trainer_and_backends_are_asked_for_the_qat_k
     cells, excluded = combinations(matrix, ["x"])
     verdicts = {verdict_key(matrix, c): Verdict() for c in cells}
     assert {key[2] for key in verdicts} == {"qat"}  # a QAT model with no conversion step: the backend converts "qat"
-    unjudged = plan(matrix, cells, excluded, verdicts)
+    unjudged = judge(matrix, cells, excluded, verdicts)
     assert {p.state for p in unjudged.cells} == {"invalid"} and "no installed trainer" in unjudged.cells[0].reason
     keys = {training_key(matrix, c) for c in cells}
-    refused = plan(matrix, cells, excluded, verdicts, {k: Verdict(invalid="qat: torch: no such thing") for k in keys})
+    refused = judge(matrix, cells, excluded, verdicts, {k: Verdict(invalid="qat: torch: no such thing") for k in keys})
     assert refused.cells[0].reason == "qat: torch: no such thing"
-    able = plan(matrix, cells, excluded, verdicts, {k: Verdict(by="torch") for k in keys})
+    able = judge(matrix, cells, excluded, verdicts, {k: Verdict(by="torch") for k in keys})
     assert {p.state for p in able.cells} == {"run"}
 
 

@@ -12,17 +12,19 @@ import sqlite3
 import subprocess
 import sys
 import tarfile
-import time
 from importlib.util import find_spec
 from pathlib import Path
 
 import pytest
 from conftest import cli, onnx_matrix_text, popen_cli
+from lock_helpers import flock_waiters, release, start_holder
+from polling import wait_for
 
 from bench_matrix.cell import Cell, CellPlan
-from bench_matrix.executors.base import CellWork
 from bench_matrix.jobs import ConvertJob, MeasureJob, PreparedData
+from bench_matrix.jobs.results import Converted
 from bench_matrix.matrix.spec import Settings
+from bench_matrix.measure.machine_lock import LOCK_FILE, current_holder
 from bench_matrix.sources import SourceModel
 from bench_matrix.workspace import Workspace
 
@@ -31,7 +33,7 @@ needs_ray = pytest.mark.skipif(find_spec("ray") is None,
 NODES = ("node-a", "node-b")
 # two ONNX models at two precisions on the CPU, plus their CUDA cells (skipped: no node has a GPU)
 MATRIX = onnx_matrix_text(["tiny", "twin"], ["fp32", "fp16"]).replace("target: [cpu]", "target: [cpu, cuda]")
-SLOW = "min_time_s: 2.0"  # a measurement long enough to kill its task mid-cell
+SLOW = "min_time_s: 2.0"  # a timed phase long enough to be seen, and its task killed, while it runs
 
 
 @pytest.fixture(scope="module")
@@ -97,26 +99,25 @@ def test_jobs_move_to_a_node_workspace_with_the_shipped_paths(tmp_path):
     source = SourceModel("m", "onnx", "onnx", tmp_path / "project" / "m.onnx", "0" * 64, ())
     cell = Cell("m", "onnx", "onnxruntime", "none", "fp32", "cpu")
     convert = ConvertJob(ws, cell, CellPlan(cell, "run").step, source, data, "nhwc", Settings(), {})
-    measure = MeasureJob(ws, cell, "regression", Path(), {}, False, source, data, "nhwc", Settings(),
+    converted = Converted(node.artifact("onnxruntime", "a1"), {}, False)  # made on the node: it stays
+    measure = MeasureJob(ws, cell, "regression", converted, source, data, "nhwc", Settings(),
                          ws.models("k") / "reference.npz")
     moved = {str(data.directory): "/n/d1", str(source.path): "/n/src/m.onnx", str(ws.models("k")): "/n/k"}
-    work = CellWork(CellPlan(cell, "run"), convert, measure, ws.cell_log(cell.key), "t")
-    work = relocate(work, moved, node)
-    assert work.convert.workspace == node and work.measure.workspace == node
-    assert work.convert.data.directory == Path("/n/d1") and work.measure.data.info == {"fingerprint": "d1"}
-    assert work.convert.source.path == Path("/n/src/m.onnx")
-    assert work.measure.reference == Path("/n/k/reference.npz")
-    assert work.plan.cell == cell and work.convert.settings == Settings()
+    convert, measure = relocate((convert, measure), moved, node)
+    assert convert.workspace == node and measure.workspace == node
+    assert convert.data.directory == Path("/n/d1") and measure.data.info == {"fingerprint": "d1"}
+    assert convert.source.path == Path("/n/src/m.onnx")
+    assert measure.reference == Path("/n/k/reference.npz") and measure.converted == converted
+    assert measure.cell == cell and convert.settings == Settings()
 
 
 def test_tasks_ask_for_a_gpu_where_the_backend_runs_the_target_on_cuda(tmp_path):
     """The GPU share follows each backend's `devices`, as the nodes' probes report them."""
     from bench_matrix.executors.ray_cluster import GPU_SHARE, gpu_share
     from bench_matrix.jobs import ProbeJob
-    from bench_matrix.jobs.probe import devices, probe
+    from bench_matrix.jobs.probe import probe
 
-    described = probe(ProbeJob(Workspace(tmp_path), ("onnxruntime", "openvino"), keys=()))["backends"]
-    known = devices(described)
+    known = probe(ProbeJob(Workspace(tmp_path), ("onnxruntime", "openvino"), keys=())).devices()
 
     def share(backend: str, target: str) -> float:
         return gpu_share(known, Cell("m", "onnx", backend, "none", "fp32", target))
@@ -140,6 +141,8 @@ def test_a_ray_run_records_what_a_local_run_does_on_the_nodes(onnx_project, clus
     for r in measured:  # converted and measured in the node's own workspace, from what was shipped there
         assert r["artifact"].startswith(str(root / r["host"])) and r["env"]["ray"]["attempt"] == 1
         assert any((root / r["host"] / "shipped").iterdir())
+    for kind in ("datasets", "models"):  # the dataset and the models were prepared on the nodes too
+        assert any((root / host / "cache" / kind).is_dir() for host in NODES), kind
     skipped = [r for r in distributed if r["status"] == "skipped"]
     assert skipped and all("node-a, node-b: " in r["reason"] for r in skipped)  # each node's reason
     for host in NODES:  # one timing at a time per node
@@ -152,40 +155,59 @@ def test_a_ray_run_records_what_a_local_run_does_on_the_nodes(onnx_project, clus
     assert "0 ok" in again and "4 already stored" in again  # the nodes' records count as done
 
 
-def _kill_measuring(count: int, proc: subprocess.Popen, deadline_s: float = 120) -> int:
-    """SIGKILL the Ray worker process measuring a cell, `count` times (or until the run ends); how many."""
-    killed, seen, deadline = 0, set(), time.monotonic() + deadline_s
-    while killed < count and proc.poll() is None and time.monotonic() < deadline:
-        for entry in Path("/proc").iterdir():
-            try:
-                title = (entry / "cmdline").read_bytes().split(b"\0")[0]
-            except (OSError, ValueError):
-                continue
-            if title.startswith(b"ray::measure_on_node") and entry.name not in seen:
-                time.sleep(0.5)  # mid-cell: the measurement has begun
-                os.kill(int(entry.name), signal.SIGKILL)
-                seen.add(entry.name)
-                killed += 1
-                break
-        time.sleep(0.1)
-    return killed
+def _ray_task_above(pid: int) -> int | None:
+    """The Ray worker process (titled `ray::TASK`) that `pid` is or runs under, if any."""
+    while pid > 1:
+        try:
+            title = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[0]
+            parent = int(Path(f"/proc/{pid}/stat").read_bytes().rsplit(b")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            return None
+        if title.startswith(b"ray::"):
+            return pid
+        pid = parent
+    return None
+
+
+def _timing_task(root: Path, done: set[int]) -> int | None:
+    """The Ray worker (not in `done`) whose cell is timing: its measuring child holds a node's timing slot."""
+    for name in NODES:
+        holder = current_holder(root / f"{name}-lock")
+        task = _ray_task_above(holder.pid) if holder else None
+        if task and task not in done:
+            return task
+    return None
+
+
+def _kill_measuring(count: int, proc: subprocess.Popen, root: Path) -> int:
+    """SIGKILL the Ray worker of a cell while the cell is timing, `count` times (or until the run ends); how
+    many."""
+    killed: set[int] = set()
+    while len(killed) < count:
+        task = wait_for(lambda: -1 if proc.poll() is not None else _timing_task(root, killed),
+                        "a cell timing on a node")
+        if task < 0:
+            break
+        os.kill(task, signal.SIGKILL)
+        killed.add(task)
+    return len(killed)
 
 
 @needs_ray
 @pytest.mark.slow
 def test_a_killed_task_process_is_retried_and_a_cell_lost_every_time_fails(onnx_project, cluster):
-    simulated, _ = cluster
+    simulated, root = cluster
     matrix = onnx_matrix_text(["tiny"], ["fp32"]).replace("min_time_s: 0.02", SLOW)
     (onnx_project / "m.yaml").write_text(matrix)
     args = ("run", "m.yaml", "--executor", "ray", "--address", simulated.address, "--force")
     proc = popen_cli(onnx_project, *args)
-    assert _kill_measuring(1, proc) == 1
+    assert _kill_measuring(1, proc, root) == 1
     assert proc.wait(timeout=120) == 0, proc.stdout.read()
     [retried] = _records(onnx_project / "ws" / "results.sqlite")
     assert retried["status"] == "ok" and retried["env"]["ray"]["attempt"] == 2
 
     proc = popen_cli(onnx_project, *args)
-    assert _kill_measuring(3, proc) == 3
+    assert _kill_measuring(3, proc, root) == 3
     assert proc.wait(timeout=120) == 0, proc.stdout.read()
     lost = _records(onnx_project / "ws" / "results.sqlite")[-1]
     assert lost["status"] == "failed" and "lost on the Ray cluster (3 attempts)" in lost["reason"]
@@ -195,16 +217,24 @@ def test_a_killed_task_process_is_retried_and_a_cell_lost_every_time_fails(onnx_
 @needs_ray
 @pytest.mark.slow
 def test_ctrl_c_on_the_driver_keeps_finished_cells_and_the_run_resumes(onnx_project, cluster):
-    simulated, _ = cluster
-    (onnx_project / "m.yaml").write_text(MATRIX.replace("min_time_s: 0.02", "min_time_s: 1.0"))
+    simulated, root = cluster
+    (onnx_project / "m.yaml").write_text(MATRIX)
     args = ("run", "m.yaml", "--executor", "ray", "--address", simulated.address)
     db = onnx_project / "ws" / "results.sqlite"
+    lock = root / f"{NODES[1]}-lock"
+    # the second node's slot held: a cell there waits for it, so the run cannot end before it is interrupted
+    held = start_holder("the test", env={"BENCH_MATRIX_LOCK_DIR": str(lock)})
     proc = popen_cli(onnx_project, *args)
-    while not any(r["status"] == "ok" for r in _records_so_far(db)):
+
+    def interruptible() -> bool:
         assert proc.poll() is None, proc.stdout.read()
-        time.sleep(0.2)
+        return flock_waiters(lock / LOCK_FILE) == 1 and any(r["status"] == "ok" for r in _records_so_far(db))
+
+    wait_for(interruptible, "a cell stored and another waiting on the second node", timeout_s=180)
     proc.send_signal(signal.SIGINT)
     output, _ = proc.communicate(timeout=60)
+    release(held)
+    held.wait(timeout=60)
     assert proc.returncode == 130 and "interrupted" in output and "Traceback" not in output
     with sqlite3.connect(db) as con:
         [summary] = [json.loads(s) for (s,) in con.execute("SELECT summary FROM runs")]

@@ -13,7 +13,7 @@ from conftest import cli, onnx_matrix_text
 
 from bench_matrix.cell import Cell, CellPlan
 from bench_matrix.errors import UserError
-from bench_matrix.runner import Shard
+from bench_matrix.selection import Shard
 
 # two ONNX models at two precisions on the CPU, plus their CUDA cells: skipped here (no GPU) with the reason
 MATRIX = onnx_matrix_text(["tiny", "twin"], ["fp32", "fp16"]).replace("target: [cpu]", "target: [cpu, cuda]")

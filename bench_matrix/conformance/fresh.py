@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from bench_matrix.launcher import THREAD_VARIABLES
+from bench_matrix.executors.process import THREAD_VARIABLES
 
 
 def infos(jobs: list[dict[str, Any]], threads: int, cwd: Path) -> dict[str, dict[str, Any]]:

@@ -1,14 +1,17 @@
-"""Where a run's cells execute: one process per job on this machine (local), or as tasks on a Ray cluster."""
+"""Where a run's jobs execute: each in its own process on this machine (local), or as tasks on a Ray cluster.
+The interface is executors/base.py; importing this package imports neither executor."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from bench_matrix.errors import UserError
-from bench_matrix.executors.base import CellResult, CellWork, Executor
-from bench_matrix.workspace import Workspace
+
+if TYPE_CHECKING:
+    from bench_matrix.executors.base import Executor
+    from bench_matrix.workspace import Workspace
 
 EXECUTORS = ("local", "ray")
-
-__all__ = ["EXECUTORS", "CellResult", "CellWork", "Executor", "open_executor"]
 
 
 def open_executor(kind: str, workspace: Workspace, address: str | None = None) -> Executor:

@@ -1,5 +1,5 @@
-"""The executor interface: the runner hands it cells ready to run (`CellWork`) and collects `CellResult`s as
-each cell ends; the executor decides where each job's process runs."""
+"""The executor interface: the runner submits `Work` (a job, and maybe the job that follows it on the same
+machine) and takes an `Ended` back as each piece ends; the executor decides where each job runs."""
 
 from __future__ import annotations
 
@@ -7,48 +7,63 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from bench_matrix.cell import CellPlan
-from bench_matrix.jobs import ConvertJob, MeasureJob
-from bench_matrix.launcher import Outcome
-from bench_matrix.plan import Plan
+from bench_matrix.jobs import Job
+
+if TYPE_CHECKING:
+    from bench_matrix.plan import Plan
 
 Phase = Callable[[str], None]
 Tick = Callable[[], None]
 
 
 @dataclass(frozen=True)
-class CellWork:
-    """One cell ready to run: its conversion job and its measurement job (whose artifact the conversion
-    fills in), with the cell's log and when the runner started it."""
+class Limits:
+    """How a job's process runs: the log it writes to, its time limit and its threads (None: all cores)."""
 
-    plan: CellPlan
-    convert: ConvertJob
-    measure: MeasureJob
     log: Path
-    started: str
+    timeout_s: float
+    threads: int | None = None
 
 
-@dataclass
-class CellResult:
-    """How a cell ended: the measure job's value (metrics, samples, env), or the reason it failed."""
+@dataclass(frozen=True, eq=False)
+class Work:
+    """A job to run and, when `then` is given, the job built from its result that runs next on the same
+    machine (a measurement after its conversion); `limits.timeout_s` covers both."""
 
-    work: CellWork
-    measured: dict[str, Any] | None = None
+    job: Job
+    limits: Limits
+    then: Callable[[Any], Job] | None = None
+    on: Any = None  # the machine to run on (an earlier Ended's `where`, holding its files); None: any
+
+
+@dataclass(frozen=True)
+class Ended:
+    """How work ended: the jobs that ran and the typed result of each that succeeded; when the last one
+    failed, why, whether that is the user's to fix, and the environment it failed in; where the work ran."""
+
+    work: Work
+    jobs: tuple[Job, ...]
+    results: tuple[Any, ...]
     error: str | None = None
-    artifact: str | None = None  # the artifact's model path, once converted
-    again: MeasureJob | None = None  # the measurement job a later pass repeats
-    env: dict[str, Any] | None = None  # where a failed cell ran (an ok one's env is measured["env"])
-    placement: Any = None  # where the executor ran it, for later passes (a Ray node id; None locally)
+    user_error: bool = False
+    env: dict[str, Any] | None = None
+    where: Any = None
 
     @property
     def ok(self) -> bool:
         return self.error is None
 
+    @property
+    def result(self) -> Any:
+        """The last job's result."""
+        return self.results[-1]
+
 
 class Executor(ABC):
-    """Runs cells' jobs, each in its own process, somewhere; the runner stores what comes back."""
+    """Runs jobs, each in its own process, somewhere; the runner stores what comes back."""
 
     def decide(self, plan: Plan, cells: list[CellPlan]) -> list[CellPlan]:
         """The cells with their run/skip state as this executor's machines judge them (default: as
@@ -60,16 +75,12 @@ class Executor(ABC):
         """The hosts whose stored records this executor's runs write (a cell done on one of them is done)."""
 
     @abstractmethod
-    def submit(self, work: CellWork, on_phase: Phase, tick: Tick) -> None:
-        """Start (or run) a cell; its result comes out of `results`."""
+    def submit(self, work: Work, on_phase: Phase, tick: Tick) -> None:
+        """Start (or run) a piece of work; how it ended comes out of `ended`."""
 
     @abstractmethod
-    def results(self, wait: bool) -> Iterator[CellResult]:
-        """Results of submitted cells as each ends: those ended so far, or (`wait`) every one still due."""
-
-    @abstractmethod
-    def measure_again(self, result: CellResult, on_phase: Phase, tick: Tick) -> Outcome:
-        """Measure an ok cell once more, in a fresh process on the machine that holds its artifact."""
+    def ended(self, wait: bool) -> Iterator[Ended]:
+        """Work as each piece ends: what has ended so far, or (`wait`) every piece still due."""
 
     def close(self) -> None:
         """Stop whatever still runs and let go of the machines."""

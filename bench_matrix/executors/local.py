@@ -1,69 +1,58 @@
-"""The local executor: each cell's conversion and measurement run one after the other on this machine, each
-in its own process (`launcher.run_job`). The Ray executor's tasks run cells with these same functions."""
+"""The local executor: each job runs at once on this machine, in its own process (executors/process.py); a
+Ray node runs its tasks' jobs with it too."""
 
 from __future__ import annotations
 
 import time
 from collections.abc import Iterator
-from dataclasses import replace
-from pathlib import Path
 
-from bench_matrix.executors.base import CellResult, CellWork, Executor, Phase, Tick
-from bench_matrix.jobs import MeasureJob
-from bench_matrix.launcher import Outcome, run_job
+from bench_matrix.executors.base import Ended, Executor, Limits, Phase, Tick, Work
+from bench_matrix.executors.process import run_in_process
+from bench_matrix.jobs import Job, ProbeJob
 from bench_matrix.measure import env as environment
 from bench_matrix.workspace import Workspace
 
-
-def convert_cell(work: CellWork, on_phase: Phase, tick: Tick) -> tuple[Outcome, MeasureJob | None]:
-    """Convert the cell's source; the outcome and the measurement job of the artifact it made."""
-    settings = work.convert.settings
-    converted = run_job(work.convert, work.convert.workspace.jobs, work.log, settings.timeout_s,
-                        settings.threads, on_phase, tick)
-    if not converted.ok:
-        return converted, None
-    value = converted.value
-    return converted, replace(work.measure, artifact_dir=Path(value["artifact_dir"]),
-                              manifest=value["manifest"], cached=value["cached"])
+PROBE_TIMEOUT_S = 300.0
 
 
-def measure_cell(job: MeasureJob, log: Path, timeout_s: float, on_phase: Phase, tick: Tick) -> Outcome:
-    """Load, time and evaluate an artifact in its own process."""
-    return run_job(job, job.workspace.jobs, log, timeout_s, job.settings.threads, on_phase, tick)
-
-
-def run_cell(work: CellWork, on_phase: Phase, tick: Tick) -> CellResult:
-    """Convert, then measure within what is left of the cell's time limit."""
-    deadline = time.monotonic() + work.convert.settings.timeout_s
-    converted, job = convert_cell(work, on_phase, tick)
-    if job is None:
-        return CellResult(work, error=f"convert: {converted.error}", env=environment.capture())
-    artifact = str(job.artifact_dir / "model")
-    measured = measure_cell(job, work.log, max(deadline - time.monotonic(), 1.0), on_phase, tick)
-    if not measured.ok:
-        return CellResult(work, error=f"measure: {measured.error}", artifact=artifact,
-                          env=environment.capture())
-    return CellResult(work, measured=measured.value, artifact=artifact, again=replace(job, closed_loop=None))
+def probe_here(job: ProbeJob) -> Ended:
+    """Run a probe job on this machine (log: the workspace's probe log)."""
+    limits = Limits(job.workspace.log("probe"), PROBE_TIMEOUT_S)
+    return LocalExecutor(job.workspace).run(Work(job, limits))
 
 
 class LocalExecutor(Executor):
-    """One cell at a time on this machine."""
+    """One piece of work at a time on this machine."""
 
     def __init__(self, workspace: Workspace):
         self.workspace = workspace
-        self._ended: list[CellResult] = []
+        self._ended: list[Ended] = []
 
     def hosts(self) -> set[str]:
         return {environment.host_name()}
 
-    def submit(self, work: CellWork, on_phase: Phase, tick: Tick) -> None:
-        self._ended.append(run_cell(work, on_phase, tick))
+    def submit(self, work: Work, on_phase: Phase, tick: Tick) -> None:
+        self._ended.append(self.run(work, on_phase, tick))
 
-    def results(self, wait: bool) -> Iterator[CellResult]:
+    def ended(self, wait: bool) -> Iterator[Ended]:
         while self._ended:
             yield self._ended.pop(0)
 
-    def measure_again(self, result: CellResult, on_phase: Phase, tick: Tick) -> Outcome:
-        job = result.again
-        assert job is not None
-        return measure_cell(job, result.work.log, job.settings.timeout_s, on_phase, tick)
+    def run(self, work: Work, on_phase: Phase = lambda _: None, tick: Tick = lambda: None) -> Ended:
+        """Run the work's job, then the job built from its result within what is left of the time limit."""
+        deadline = time.monotonic() + work.limits.timeout_s
+        ended = self._step(work, Ended(work, (), ()), work.job, work.limits.timeout_s, on_phase, tick)
+        if not ended.ok or work.then is None:
+            return ended
+        left = max(deadline - time.monotonic(), 1.0)
+        return self._step(work, ended, work.then(ended.result), left, on_phase, tick)
+
+    def _step(self, work: Work, so_far: Ended, job: Job, timeout_s: float, on_phase: Phase,
+              tick: Tick) -> Ended:
+        """The work after one more of its jobs ran, in its own process."""
+        outcome = run_in_process(job, self.workspace.jobs, work.limits.log, timeout_s, work.limits.threads,
+                                 on_phase, tick)
+        jobs = (*so_far.jobs, job)
+        if not outcome.ok:
+            return Ended(work, jobs, so_far.results, outcome.error, outcome.user_error, environment.capture())
+        return Ended(work, jobs, (*so_far.results, outcome.result))

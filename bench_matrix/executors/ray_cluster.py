@@ -1,16 +1,13 @@
-"""The Ray executor: the driver (this process) probes every node, ships the shared preparation through the
-object store, and runs each cell's conversion and measurement as Ray tasks, each job still in its own process
-on the node. A node measures one cell at a time: every node offers the resource `bench_matrix_timing: 1`, a
-measurement takes more than half of it, a conversion a sliver (so conversions overlap, and only go to
-bench-matrix nodes); the measurement runs on the node holding the artifact (node affinity)."""
+"""The Ray executor: the driver probes every node and runs every job as a Ray task, what it reads shipped
+through the object store; a node measures one cell at a time (the `bench_matrix_timing` resource)."""
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import time
 import warnings
+from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -19,41 +16,42 @@ from typing import Any
 from bench_matrix.cell import Cell, CellPlan
 from bench_matrix.errors import UserError
 from bench_matrix.executors import ray_tasks
-from bench_matrix.executors.base import CellResult, CellWork, Executor, Phase, Tick
-from bench_matrix.jobs.probe import devices
-from bench_matrix.launcher import Outcome
-from bench_matrix.matrix.expand import Verdict, plan as judge, training_key, verdict_key
+from bench_matrix.executors.base import Ended, Executor, Limits, Phase, Tick, Work
+from bench_matrix.executors.local import PROBE_TIMEOUT_S
+from bench_matrix.executors.ray_tasks import NodeRun, Shipment
+from bench_matrix.jobs import ConvertJob, Job, MeasureJob, ProbeJob
+from bench_matrix.matrix.expand import judge, training_key, verdict_key
+from bench_matrix.matrix.spec import file_kind
 from bench_matrix.measure import env as environment
 from bench_matrix.plan import Plan
-from bench_matrix.sources import SourceModel
 from bench_matrix.sources.onnx_file import external_data_files
 from bench_matrix.workspace import Workspace
 
 TIMING = "bench_matrix_timing"
 MEASURE_SHARE = 0.6  # more than half of a node's 1: two measurements never share a node
-CONVERT_SHARE = 0.01  # beside one measurement, up to 40 conversions fit (CPUs permitting)
+JOB_SHARE = 0.01  # any other job: up to 40 fit beside one measurement (CPUs permitting)
 GPU_SHARE = 0.01  # tasks of cells on a CUDA device see the node's GPU (Ray hides GPUs from tasks asking none)
-MAX_ATTEMPTS = 3  # a cell whose task or node is lost runs again, elsewhere if need be, this many times in all
+MAX_ATTEMPTS = 3  # work whose task or node is lost runs again, elsewhere if need be, this many times in all
 INSTALL = "pip install 'bench-matrix[ray]'"
 NO_USAGE_STATS = "RAY_USAGE_STATS_ENABLED"  # "0": Ray sends no usage statistics from clusters it starts
 
 
 @dataclass
 class _Flight:
-    """A task in flight: its cell, its stage (convert, measure), attempt, node and when it was submitted."""
+    """Work in flight: its attempt, the jobs started so far (the last one runs now) and the results of those
+    that ended, its node, when its task was submitted, and the first job's timing once it ended."""
 
-    work: CellWork
-    stage: str
+    work: Work
     attempt: int
-    submitted: float
+    jobs: tuple[Job, ...]
+    results: tuple[Any, ...] = ()
     node: str | None = None
-    job: Any = None  # the measurement job, once converted
-    log: str = ""  # the cell's log on its node, once converted
-    timing: dict[str, float] | None = None  # the conversion's, once converted
+    submitted: float = 0.0
+    timing: dict[str, float] | None = None
 
 
 class RayExecutor(Executor):
-    """Cells as Ray tasks on the nodes of a cluster; results come back as each cell ends."""
+    """Jobs as Ray tasks on the nodes of a cluster; work comes back as each piece ends."""
 
     def __init__(self, workspace: Workspace, address: str | None):
         try:
@@ -66,11 +64,10 @@ class RayExecutor(Executor):
         self.hostnames: dict[str, str] = {}  # node id -> host, from the probes
         self._able: dict[str, list[str]] = {}  # cell key -> nodes that can run it
         self._devices: dict[tuple[str, str], str] = {}  # (backend, target) -> its device, as the nodes probed
-        self._shipped: dict[str, ray_tasks.Shipment] = {}
-        self._flights: dict[Any, _Flight] = {}
-        self._ended: list[CellResult] = []
-        tasks = (ray_tasks.probe_node, ray_tasks.convert_on_node, ray_tasks.measure_on_node)
-        self._remote = {fn.__name__: ray.remote(fn) for fn in tasks}
+        self._shipped: dict[str, Shipment] = {}  # a path as the driver names it -> its content in the store
+        self._flights: dict[Any, tuple[_Flight, Any]] = {}  # task ref -> its flight, ref of its packed files
+        self._ended: list[Ended] = []
+        self._remote = ray.remote(ray_tasks.run_on_node)
 
     def decide(self, plan: Plan, cells: list[CellPlan]) -> list[CellPlan]:
         """Probe every node; a cell runs where a node can run it, else is skipped with each node's reason."""
@@ -91,26 +88,23 @@ class RayExecutor(Executor):
         matrix = plan.matrix
         keys = tuple(sorted({verdict_key(matrix, p.cell) for p in cells}))
         training = tuple(sorted({k for p in cells if (k := training_key(matrix, p.cell))}))
-        names = tuple(sorted({k[0] for k in keys}))
-        probe = self._remote["probe_node"]
-        refs = {node: probe.options(num_cpus=0, num_gpus=gpus, scheduling_strategy=self._on(node)).remote(
-                    names, keys, training) for node, gpus in self.nodes.items()}
+        job = ProbeJob(self.workspace, tuple(sorted({k[0] for k in keys})), keys, training)
+        limits = Limits(self.workspace.log("probe"), PROBE_TIMEOUT_S)
+        refs = {node: self._remote.options(num_cpus=0, num_gpus=gpus, num_returns=2, name="probe_on_node",
+                                           scheduling_strategy=self._on(node))
+                .remote(job, limits, {}, time.time()) for node, gpus in self.nodes.items()}
         states = {}
-        for node, ref in refs.items():
+        for node, (ref, _) in refs.items():
             try:
-                probed = self.ray.get(ref)
+                run = self.ray.get(ref)
             except self.ray.exceptions.RayError as exc:  # the node died or cannot run tasks
-                probed = {"host": node[:8], "error": f"{type(exc).__name__}: {exc}"}
-            self.hostnames[node] = probed["host"]
-            if probed["error"]:
-                failed = f"probing the node failed: {probed['error']}"
-                states[node] = {p.cell: ("skip", failed) for p in cells}
+                run = NodeRun(node, node[:8], error=f"{type(exc).__name__}: {exc}")
+            self.hostnames[node] = run.host
+            if run.error:
+                states[node] = {p.cell: ("skip", f"probing the node failed: {run.error}") for p in cells}
                 continue
-            value = probed["value"]
-            self._devices.update(devices(value["backends"]))
-            verdicts = {tuple(json.loads(k)): Verdict(**v) for k, v in value["verdicts"].items()}
-            trainers = {tuple(json.loads(k)): Verdict(**v) for k, v in value["trainers"].items()}
-            expansion = judge(matrix, [p.cell for p in cells], 0, verdicts, trainers)
+            self._devices.update(run.result.devices())
+            expansion = judge(matrix, [p.cell for p in cells], 0, run.result.verdicts, run.result.trainers)
             states[node] = {q.cell: (q.state, q.reason) for q in expansion.cells}
         return states
 
@@ -124,137 +118,124 @@ class RayExecutor(Executor):
     def hosts(self) -> set[str]:
         return set(self.hostnames.values()) or {environment.host_name()}
 
-    def submit(self, work: CellWork, on_phase: Phase, tick: Tick) -> None:
-        self._convert(work, attempt=1)
+    def submit(self, work: Work, on_phase: Phase, tick: Tick) -> None:
+        self._start(work, attempt=1)
 
-    def _convert(self, work: CellWork, attempt: int) -> None:
-        shipments = {str(p): self._ship(p, work.convert.source) for p in _needed(work)}
-        node = self._placement(work)
-        options = self._options(work, CONVERT_SHARE, self._on(node) if node else "DEFAULT")
-        now = time.time()
-        ref = self._remote["convert_on_node"].options(**options).remote(work, shipments, now)
-        self._flights[ref] = _Flight(work, "convert", attempt, now, node)
+    def _start(self, work: Work, attempt: int) -> None:
+        flight = _Flight(work, attempt, (work.job,), node=work.on or self._placement(work.job))
+        self._launch(flight, work.limits.timeout_s)
 
-    def _measure(self, flight: _Flight, timeout_s: float) -> None:
-        options = self._options(flight.work, MEASURE_SHARE, self._on(flight.node))
-        flight.submitted, flight.stage = time.time(), "measure"
-        ref = self._remote["measure_on_node"].options(**options).remote(flight.job, flight.log, timeout_s,
-                                                                        flight.submitted)
-        self._flights[ref] = flight
+    def _launch(self, flight: _Flight, timeout_s: float) -> None:
+        """Submit the flight's current job as a task, with what it reads shipped."""
+        job = flight.jobs[-1]
+        cell = _cell(job)
+        shipments = {str(path): self._ship(path) for path in job.reads()}
+        options = {"num_cpus": 1, "num_gpus": gpu_share(self._devices, cell) if cell else 0,
+                   "resources": {TIMING: MEASURE_SHARE if isinstance(job, MeasureJob) else JOB_SHARE},
+                   "max_retries": 0, "num_returns": 2, "name": f"{job.name}_on_node",
+                   "scheduling_strategy": self._on(flight.node) if flight.node else "DEFAULT"}
+        flight.submitted = time.time()
+        limits = replace(flight.work.limits, timeout_s=timeout_s)
+        ref, files = self._remote.options(**options).remote(job, limits, shipments, flight.submitted)
+        self._flights[ref] = (flight, files)
 
-    def _options(self, work: CellWork, share: float, strategy: Any) -> dict[str, Any]:
-        return {"num_cpus": 1, "num_gpus": gpu_share(self._devices, work.plan.cell),
-                "resources": {TIMING: share}, "max_retries": 0, "scheduling_strategy": strategy}
-
-    def _placement(self, work: CellWork) -> str | None:
-        """None (Ray's choice) when every node can run the cell; else the able node with the fewest tasks."""
-        able = self._able.get(work.plan.cell.key, list(self.nodes))
+    def _placement(self, job: Job) -> str | None:
+        """None (Ray's choice) when every node can run the job; else the able node with the fewest tasks."""
+        able = self._able_nodes(job)
         if set(able) >= set(self.nodes):
             return None
-        busy = {n: 0 for n in able}
-        for flight in self._flights.values():
-            if flight.node in busy:
-                busy[flight.node] += 1
+        busy = Counter(flight.node for flight, _ in self._flights.values())
         return min(able, key=lambda n: busy[n])
+
+    def _able_nodes(self, job: Job) -> list[str]:
+        cell = _cell(job)
+        return self._able.get(cell.key, list(self.nodes)) if cell else list(self.nodes)
 
     def _on(self, node: str | None) -> Any:
         from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
         return NodeAffinitySchedulingStrategy(node_id=node, soft=False)
 
-    def _ship(self, path: Path, source: SourceModel) -> ray_tasks.Shipment:
-        """The path's content in the object store (the source model's with its external data), put there once
-        per run."""
+    def _ship(self, path: Path) -> Shipment:
+        """The path's content in the object store (an ONNX model's with its external data): put there once per
+        run from this machine, unless a node made it and packed it already."""
         if str(path) not in self._shipped:
-            beside = external_data_files(path) if path == source.path and source.format == "onnx" else []
+            beside = external_data_files(path) if file_kind(path) == ("onnx", "onnx") else []
             key, data = ray_tasks.pack(path, beside)
-            self._shipped[str(path)] = ray_tasks.Shipment(key, path.name, self.ray.put(data))
+            self._shipped[str(path)] = Shipment(key, path.name, self.ray.put(data))
         return self._shipped[str(path)]
 
-    def results(self, wait: bool) -> Iterator[CellResult]:
+    def ended(self, wait: bool) -> Iterator[Ended]:
         while self._flights or self._ended:
             if self._flights:
                 ready, _ = self.ray.wait(list(self._flights), num_returns=1 if wait else len(self._flights),
                                          timeout=None if wait else 0)
                 for ref in ready:
-                    self._advance(ref, self._flights.pop(ref))
+                    self._advance(ref, *self._flights.pop(ref))
             while self._ended:
                 yield self._ended.pop(0)
             if not wait:
                 return
 
-    def _advance(self, ref: Any, flight: _Flight) -> None:
-        """A task ended: measure a converted cell, or end the cell; a lost task runs again or fails."""
+    def _advance(self, ref: Any, flight: _Flight, files: Any) -> None:
+        """A task ended: run the job that follows, or end the work; lost work runs again or fails."""
         try:
-            value = self.ray.get(ref)
+            run: NodeRun = self.ray.get(ref)
         except self.ray.exceptions.RayTaskError as exc:  # our code raised on the node: no retry
-            self._ended.append(self._failed(flight, f"{flight.stage} on the Ray node failed: {exc}"))
+            self._ended.append(self._failed(flight, f"failed on the Ray node: {exc}"))
             return
         except self.ray.exceptions.RayError as exc:  # the worker, its node or an object was lost
             self._lost(flight, f"{type(exc).__name__}: {str(exc).strip().splitlines()[0]}")
             return
-        if flight.stage == "convert":
-            self._converted(flight, value)
+        flight.node = run.node
+        self.hostnames.setdefault(run.node, run.host)
+        for path, (key, name) in run.made.items():
+            self._shipped[path] = Shipment(key, name, files, member=path)
+        if run.error:
+            self._ended.append(Ended(flight.work, flight.jobs, flight.results, run.error, run.user_error,
+                                     run.env, run.node))
+        elif flight.work.then is not None and not flight.results:
+            self._follow(flight, run)
         else:
-            self._measured(flight, value)
+            result = self._placed(flight, run, flight.timing) if flight.timing else run.result
+            self._ended.append(Ended(flight.work, flight.jobs, (*flight.results, result), where=run.node))
 
-    def _converted(self, flight: _Flight, value: dict[str, Any]) -> None:
-        flight.node, flight.timing = value["node"], value["timing"]
-        self.hostnames.setdefault(value["node"], value["host"])
-        if value["error"]:
-            self._ended.append(CellResult(flight.work, error=f"convert: {value['error']}", env=value["env"]))
-            return
-        flight.job, flight.log = value["job"], value["log"]
-        used = value["timing"]["ship_s"] + value["timing"]["job_s"]
-        self._measure(flight, max(flight.work.convert.settings.timeout_s - used, 1.0))
+    def _follow(self, flight: _Flight, run: NodeRun) -> None:
+        """Run the job built from the first one's result on the same node, within what is left of the
+        limit."""
+        flight.results, flight.timing = (run.result,), run.timing
+        flight.jobs = (*flight.jobs, flight.work.then(run.result))
+        used = run.timing["ship_s"] + run.timing["job_s"]
+        self._launch(flight, max(flight.work.limits.timeout_s - used, 1.0))
 
-    def _measured(self, flight: _Flight, value: dict[str, Any]) -> None:
-        outcome, artifact = value["outcome"], str(flight.job.artifact_dir / "model")
-        if not outcome.ok:
-            self._ended.append(CellResult(flight.work, error=f"measure: {outcome.error}", artifact=artifact,
-                                          env=value["env"], placement=flight.node))
-            return
-        measured = dict(outcome.value)
-        measured["env"] = {**measured["env"], "ray": self._placement_facts(flight, value["timing"])}
-        self._ended.append(CellResult(flight.work, measured=measured, artifact=artifact,
-                                      again=replace(flight.job, closed_loop=None), placement=flight.node))
-
-    def _placement_facts(self, flight: _Flight, measured: dict[str, float]) -> dict[str, Any]:
-        """Where the cell ran and what Ray added: waiting to be scheduled, shipping, returning results."""
-        converted = flight.timing or {}
+    def _placed(self, flight: _Flight, run: NodeRun, converted: dict[str, float]) -> Any:
+        """A cell's measurement with where it ran and what Ray added (`env.ray`): waiting to be scheduled,
+        shipping, returning results."""
+        measured = run.timing
         returned = max(time.time() - measured["ended"], 0.0)
-        return {"node_id": flight.node, "attempt": flight.attempt,
-                "scheduled_s": round(converted.get("scheduled_s", 0.0) + measured["scheduled_s"], 4),
-                "ship_s": round(converted.get("ship_s", 0.0), 4), "returned_s": round(returned, 4),
-                "convert_s": round(converted.get("job_s", 0.0), 4), "measure_s": round(measured["job_s"], 4)}
+        ray_facts = {"node_id": run.node, "attempt": flight.attempt,
+                     "scheduled_s": round(converted["scheduled_s"] + measured["scheduled_s"], 4),
+                     "ship_s": round(converted["ship_s"], 4), "returned_s": round(returned, 4),
+                     "convert_s": round(converted["job_s"], 4), "measure_s": round(measured["job_s"], 4)}
+        return replace(run.result, env={**run.result.env, "ray": ray_facts})
 
     def _lost(self, flight: _Flight, why: str) -> None:
-        """Run a lost cell again from its conversion, on the nodes still alive, or fail it."""
+        """Run lost work again from its first job, on the nodes still alive, or fail it (work pinned to a node
+        fails at once)."""
         alive = {n["NodeID"] for n in self.ray.nodes() if n.get("Alive")}
         self.nodes = {n: gpus for n, gpus in self.nodes.items() if n in alive}
         self._able = {key: [n for n in able if n in alive] for key, able in self._able.items()}
-        if flight.attempt < MAX_ATTEMPTS and self._able.get(flight.work.plan.cell.key, self.nodes):
-            self._convert(flight.work, flight.attempt + 1)
+        if flight.attempt < MAX_ATTEMPTS and not flight.work.on and self._able_nodes(flight.work.job):
+            self._start(flight.work, flight.attempt + 1)
             return
         tries = f"{flight.attempt} attempts" if flight.attempt > 1 else "1 attempt; no node left to retry on"
-        reason = f"{flight.stage}: lost on the Ray cluster ({tries}); last: {why}"
-        self._ended.append(self._failed(flight, reason))
+        self._ended.append(self._failed(flight, f"lost on the Ray cluster ({tries}); last: {why}"))
 
-    def _failed(self, flight: _Flight, reason: str) -> CellResult:
+    def _failed(self, flight: _Flight, reason: str) -> Ended:
         env = environment.capture()
         if flight.node in self.hostnames:
             env["host"] = self.hostnames[flight.node]
-        return CellResult(flight.work, error=reason, env=env, placement=flight.node)
-
-    def measure_again(self, result: CellResult, on_phase: Phase, tick: Tick) -> Outcome:
-        job = result.again
-        options = self._options(result.work, MEASURE_SHARE, self._on(result.placement))
-        ref = self._remote["measure_on_node"].options(**options).remote(job, str(job.workspace.cell_log(
-            result.work.plan.cell.key)), job.settings.timeout_s, time.time())
-        try:
-            return self.ray.get(ref)["outcome"]
-        except self.ray.exceptions.RayError as exc:
-            return Outcome(error=f"measure on the Ray node failed: {type(exc).__name__}: {exc}")
+        return Ended(flight.work, flight.jobs, flight.results, reason, env=env, where=flight.node)
 
     def close(self) -> None:
         for ref in self._flights:
@@ -266,6 +247,11 @@ class RayExecutor(Executor):
 def gpu_share(known: dict[tuple[str, str], str], cell: Cell) -> float:
     """The GPUs a cell's task asks Ray for: a share where its backend runs its target on CUDA, else none."""
     return GPU_SHARE if known.get((cell.backend, cell.target)) == "cuda" else 0
+
+
+def _cell(job: Job) -> Cell | None:
+    """The cell a job belongs to (a conversion's or a measurement's); None for shared preparation."""
+    return job.cell if isinstance(job, (ConvertJob, MeasureJob)) else None
 
 
 def _connect(ray: Any, address: str | None) -> None:
@@ -281,12 +267,6 @@ def _connect(ray: Any, address: str | None) -> None:
                 ray.init(resources={TIMING: 1}, include_dashboard=False, **quiet)
     except (ConnectionError, RuntimeError, ValueError) as exc:
         raise UserError(f"--address {address}: cannot connect to a Ray cluster there ({exc})") from None
-
-
-def _needed(work: CellWork) -> list[Path]:
-    """The driver's files a cell's jobs read: its source model, its dataset splits, its reference outputs."""
-    paths = [work.convert.source.path, work.convert.data.directory, work.measure.reference]
-    return [p for p in dict.fromkeys(paths) if p is not None]
 
 
 def _timing_nodes(nodes: list[dict[str, Any]], address: str | None) -> dict[str, float]:

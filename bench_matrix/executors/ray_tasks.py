@@ -1,8 +1,5 @@
-"""What runs on a Ray node: probe the node, unpack the shared preparation shipped through the object store
-into the node's own workspace, convert a cell and measure it, each job in its own process
-(`launcher.run_job`).
-
-Imported by Ray workers by reference; it imports Ray only inside the functions that need it."""
+"""What runs on a Ray node: unpack what a job reads into the node's workspace, run the job there with the
+local executor, pack what it made for jobs elsewhere (Ray is imported only inside functions)."""
 
 from __future__ import annotations
 
@@ -13,29 +10,43 @@ import shutil
 import tarfile
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from bench_matrix.executors.base import CellWork
-from bench_matrix.executors.local import convert_cell, measure_cell
-from bench_matrix.jobs import MeasureJob, ProbeJob
-from bench_matrix.launcher import run_job
+from bench_matrix.executors.base import Limits, Work
+from bench_matrix.executors.local import LocalExecutor
+from bench_matrix.jobs import Job
 from bench_matrix.measure import env as environment
 from bench_matrix.workspace import Workspace, digest
 
 NODE_WORKSPACE_VARIABLE = "BENCH_MATRIX_NODE_WORKSPACE"
-PROBE_TIMEOUT_S = 300.0
 
 
 @dataclass(frozen=True)
 class Shipment:
-    """A file or folder of the driver's (dataset splits, model source, reference outputs) in the object store,
-    packed as tar; `key` names its content, so a node unpacks it once."""
+    """A file or folder (dataset splits, model source, reference outputs) in the object store, packed as tar;
+    `key` names its content, so a node unpacks it once."""
 
     key: str
     name: str
-    ref: Any  # ray.ObjectRef of the tar bytes; fetched only by a node that lacks the content
+    ref: Any  # ray.ObjectRef of the tar bytes (or of a task's packed outputs); fetched only when missing
+    member: str | None = None  # in a task's packed outputs: the entry holding this tar
+
+
+@dataclass(frozen=True)
+class NodeRun:
+    """How a job ended on a node: the node and its host, the job's result (paths as the driver names them) or
+    why it failed, the outputs it packed (path -> content key and name) and how long each part took."""
+
+    node: str
+    host: str
+    result: Any = None
+    error: str | None = None
+    user_error: bool = False
+    env: dict[str, Any] | None = None  # where it failed
+    made: dict[str, tuple[str, str]] = field(default_factory=dict)
+    timing: dict[str, float] = field(default_factory=dict)
 
 
 def node_workspace() -> Workspace:
@@ -70,7 +81,9 @@ def unpack(shipments: dict[str, Shipment], ws: Workspace) -> dict[str, str]:
             tmp = final.with_name(f"{final.name}.tmp{os.getpid()}")
             shutil.rmtree(tmp, ignore_errors=True)
             tmp.mkdir(parents=True)
-            with tarfile.open(fileobj=io.BytesIO(ray.get(shipment.ref)), mode="r") as tar:
+            data = ray.get(shipment.ref)
+            data = data if shipment.member is None else data[shipment.member]
+            with tarfile.open(fileobj=io.BytesIO(data), mode="r") as tar:
                 tar.extractall(tmp, filter="data")
             try:
                 tmp.rename(final)
@@ -106,38 +119,35 @@ def _moved(text: str, moved: dict[str, str]) -> str:
     return text
 
 
-def probe_node(names: tuple[str, ...], keys: tuple, training: tuple) -> dict[str, Any]:
-    """The node's host and its probe: backends described, verdicts per combination, trainers."""
-    ws = node_workspace()
-    outcome = run_job(ProbeJob(ws, names, keys, training), ws.jobs, ws.log("probe"), PROBE_TIMEOUT_S)
-    return {"host": environment.host_name(), "error": outcome.error, "value": outcome.value}
-
-
-def convert_on_node(work: CellWork, shipments: dict[str, Shipment], submitted: float) -> dict[str, Any]:
-    """Unpack what the cell needs, convert it here; the measurement job of its artifact (or the error), this
-    node's id and host, and how long shipping and the job took."""
+def run_on_node(job: Job, limits: Limits, shipments: dict[str, Shipment],
+                submitted: float) -> tuple[NodeRun, dict[str, bytes]]:
+    """Unpack what the job reads, run it here (log: the node's own, same name), pack the files its result
+    names that it made; how it ended, and those packed files (the task's second return)."""
     import ray
 
     begin, ws = time.time(), node_workspace()
     moved = unpack(shipments, ws)
-    work = dataclasses.replace(relocate(work, moved, ws), log=ws.cell_log(work.plan.cell.key))
+    here = relocate(job, moved, ws)
     unpacked = time.time()
-    converted, job = convert_cell(work, _quiet, _quiet)
-    return {"node": ray.get_runtime_context().get_node_id(), "host": environment.host_name(),
-            "error": converted.error, "job": job, "log": str(work.log),
-            "env": None if job else environment.capture(),
-            "timing": {"scheduled_s": begin - submitted, "ship_s": unpacked - begin,
-                       "job_s": time.time() - unpacked, "ended": time.time()}}
+    ended = LocalExecutor(ws).run(Work(here, dataclasses.replace(limits, log=ws.logs / limits.log.name)))
+    back = {new: old for old, new in moved.items()}
+    made = {str(p): pack(p) for p in (ended.result.files() if ended.ok else ()) if not _shipped(p, ws)}
+    run = NodeRun(ray.get_runtime_context().get_node_id(), environment.host_name(),
+                  result=relocate(ended.result, back, ws) if ended.ok else None,
+                  error=_named_back(ended.error, back), user_error=ended.user_error, env=ended.env,
+                  made={path: (key, Path(path).name) for path, (key, _) in made.items()},
+                  timing={"scheduled_s": begin - submitted, "ship_s": unpacked - begin,
+                          "job_s": time.time() - unpacked, "ended": time.time()})
+    return run, {path: data for path, (_, data) in made.items()}
 
 
-def measure_on_node(job: MeasureJob, log: str, timeout_s: float, submitted: float) -> dict[str, Any]:
-    """Measure an artifact converted on this node; the outcome and how long it waited to be scheduled."""
-    begin = time.time()
-    outcome = measure_cell(job, Path(log), timeout_s, _quiet, _quiet)
-    return {"host": environment.host_name(), "outcome": outcome,
-            "env": None if outcome.ok else environment.capture(),
-            "timing": {"scheduled_s": begin - submitted, "job_s": time.time() - begin, "ended": time.time()}}
+def _shipped(path: Path, ws: Workspace) -> bool:
+    """Whether the path is a copy of something shipped here (its origin is known; it needs no new packing)."""
+    return path.is_relative_to(ws.root / "shipped")
 
 
-def _quiet(*_: Any) -> None:
-    """Phases and ticks of a job on a node: nobody watches them there."""
+def _named_back(error: str | None, back: dict[str, str]) -> str | None:
+    """An error message naming the driver's paths, not the node's copies of them."""
+    for node_path, driver_path in back.items():
+        error = error and error.replace(node_path, driver_path)
+    return error

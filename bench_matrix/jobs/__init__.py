@@ -1,5 +1,5 @@
-"""The jobs a worker process runs, as typed values: probe, prepare a dataset or a model, fine-tune, convert,
-measure. Each names the function that runs it (`mode`); results come back as JSON-serialisable dicts."""
+"""The jobs, as typed values: probe, prepare a dataset or a model, fine-tune, convert, measure; each class
+names the function that runs it (`function`) and its result's type (`result`, jobs/results.py)."""
 
 from __future__ import annotations
 
@@ -8,28 +8,27 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from bench_matrix.cell import Cell, ClosedLoopPlan
+from bench_matrix.jobs.results import Converted, Finetuned, Measured, PreparedData, PreparedModel, Probe
 from bench_matrix.matrix.expand import TrainingKey, VerdictKey
-from bench_matrix.matrix.spec import DatasetSpec, ModelSpec, Preprocess, Settings, StrategySpec
+from bench_matrix.matrix.spec import DatasetSpec, ModelSpec, Settings, StrategySpec
 from bench_matrix.sources import SourceModel
 from bench_matrix.tensors import TensorSpec
 from bench_matrix.workspace import Workspace
 
 
 @dataclass(frozen=True)
-class PreparedData:
-    """A prepared dataset: its cache directory and its info (inputs, task, label columns or classes, counts)."""
-
-    directory: Path
-    info: dict[str, Any]
-    preprocess: Preprocess
-
-
-@dataclass(frozen=True)
 class Job:
     """What every job has: the workspace it reads and writes."""
 
-    mode: ClassVar[str]  # 'module:function' that runs the job in the worker
+    name: ClassVar[str]  # how a failure's reason names the job: 'convert: ...'
+    function: ClassVar[str]  # 'module:function' that runs the job in its own process
+    result: ClassVar[type]
     workspace: Workspace
+
+    def reads(self) -> tuple[Path, ...]:
+        """The files and folders made elsewhere (by the user, or by an earlier job) that the job reads: the
+        machine running it must hold them."""
+        return ()
 
 
 @dataclass(frozen=True)
@@ -37,28 +36,41 @@ class ProbeJob(Job):
     """Describe backends, judge combinations and fine-tunings, read the inputs model files declare and the
     parameters of factories' forward."""
 
-    mode = "bench_matrix.jobs.probe:probe"
+    name = "probe"
+    function = "bench_matrix.jobs.probe:probe"
+    result = Probe
     backends: tuple[str, ...]
     keys: tuple[VerdictKey, ...] | None = None  # None: every combination the backends declare
     training: tuple[TrainingKey, ...] = ()
     model_files: tuple[tuple[str, str, str], ...] = ()  # (framework, source format, path) of user model files
     factories: tuple[tuple[str, tuple[str, ...]], ...] = ()  # (factory, python_path) whose forward to read
 
+    def reads(self) -> tuple[Path, ...]:
+        return tuple(Path(path) for _, _, path in self.model_files)
+
 
 @dataclass(frozen=True)
 class DatasetJob(Job):
     """Read, check, preprocess and split a dataset (synthetic: of these inputs)."""
 
-    mode = "bench_matrix.jobs.prepare:prepare_dataset"
+    name = "dataset"
+    function = "bench_matrix.jobs.prepare:prepare_dataset"
+    result = PreparedData
     dataset: DatasetSpec
     inputs: tuple[TensorSpec, ...] = ()
+
+    def reads(self) -> tuple[Path, ...]:
+        return self.dataset.paths
 
 
 @dataclass(frozen=True)
 class ModelJob(Job):
-    """Materialise a model's source (training a built-in), check it against the data, compute its reference."""
+    """Materialise a model's source (training a built-in), check it against the data, compute its
+    reference."""
 
-    mode = "bench_matrix.jobs.prepare:prepare_model"
+    name = "model"
+    function = "bench_matrix.jobs.prepare:prepare_model"
+    result = PreparedModel
     model: ModelSpec
     inputs: tuple[TensorSpec, ...] | None  # declared or read from the file; None: the dataset's
     task: str
@@ -67,12 +79,17 @@ class ModelJob(Job):
     baseline: Cell
     described: str  # how the report names the model's source (paths relative to the matrix file)
 
+    def reads(self) -> tuple[Path, ...]:
+        return tuple(p for p in (self.data.directory, self.model.file, self.model.weights) if p is not None)
+
 
 @dataclass(frozen=True)
 class FinetuneJob(Job):
     """Fine-tune the pristine source with a strategy's training steps (cached by content)."""
 
-    mode = "bench_matrix.jobs.prepare:finetune"
+    name = "finetune"
+    function = "bench_matrix.jobs.prepare:finetune"
+    result = Finetuned
     source: SourceModel
     steps: tuple[StrategySpec, ...]
     trainer: str
@@ -81,12 +98,17 @@ class FinetuneJob(Job):
     layout: str
     seed: int
 
+    def reads(self) -> tuple[Path, ...]:
+        return self.source.path, self.data.directory
+
 
 @dataclass(frozen=True)
 class ConvertJob(Job):
     """Convert a source into a cell's artifact (cached by content)."""
 
-    mode = "bench_matrix.jobs.cell:convert"
+    name = "convert"
+    function = "bench_matrix.jobs.artifact:convert"
+    result = Converted
     cell: Cell
     step: StrategySpec
     source: SourceModel
@@ -95,18 +117,21 @@ class ConvertJob(Job):
     settings: Settings
     options: dict[str, Any]
 
+    def reads(self) -> tuple[Path, ...]:
+        return self.source.path, self.data.directory
+
 
 @dataclass(frozen=True)
 class MeasureJob(Job):
-    """Load an artifact, time it, evaluate it against the labels and the baseline's outputs (and drive laps
-    with it when `closed_loop` says so)."""
+    """Load a converted artifact, time it, evaluate it against the labels and the baseline's outputs (and
+    drive laps with it when `closed_loop` says so)."""
 
-    mode = "bench_matrix.jobs.cell:measure"
+    name = "measure"
+    function = "bench_matrix.jobs.measure:measure"
+    result = Measured
     cell: Cell
     task: str
-    artifact_dir: Path
-    manifest: dict[str, Any]
-    cached: bool
+    converted: Converted  # on the machine that runs this job
     source: SourceModel
     data: PreparedData
     layout: str
@@ -115,3 +140,6 @@ class MeasureJob(Job):
     metrics: tuple[str, ...] = ()
     finetune: dict[str, Any] | None = None
     closed_loop: ClosedLoopPlan | None = None  # laps to drive with the loaded session, after the evaluation
+
+    def reads(self) -> tuple[Path, ...]:
+        return tuple(p for p in (self.data.directory, self.reference) if p is not None)

@@ -1,4 +1,5 @@
-"""Artifacts: convert a source once per content hash and reuse it after; run a session over many samples."""
+"""The convert job, and artifacts: convert a source once per content hash and reuse it after; run a session
+over many samples."""
 
 from __future__ import annotations
 
@@ -7,29 +8,40 @@ import os
 import shutil
 import time
 from datetime import datetime, timezone
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from bench_matrix import data
 from bench_matrix.backend import Backend, ConvertRequest, Session
+from bench_matrix.executors.child import phase
+from bench_matrix.jobs import ConvertJob
 from bench_matrix.jobs.keys import artifact_key, calibrates, intermediates_key, params_key
+from bench_matrix.jobs.results import Converted, PreparedData
 from bench_matrix.matrix.spec import Settings, StrategySpec
+from bench_matrix.registry import load_backend
 from bench_matrix.sources import SourceModel
 from bench_matrix.tensors import Inputs, bind, count, take
 from bench_matrix.workspace import Workspace
 
 
+def convert(job: ConvertJob) -> Converted:
+    """Convert the cell's source into its artifact, or find it converted already."""
+    phase("convert")
+    cell = job.cell
+    return ensure_artifact(job.workspace, load_backend(cell.backend), job.source, job.step, cell.precision,
+                           cell.target, job.data, job.layout, job.settings, job.options)
+
+
 def ensure_artifact(ws: Workspace, backend: Backend, source: SourceModel, step: StrategySpec, precision: str,
-                    target: str, prepared: Any, layout: str, settings: Settings,
-                    options: dict[str, Any]) -> tuple[Path, dict[str, Any], bool]:
+                    target: str, prepared: PreparedData, layout: str, settings: Settings,
+                    options: dict[str, Any]) -> Converted:
     """Convert once per content (keys.artifact_key); reuse after."""
-    key = artifact_key(backend, source, step, precision, target, [prepared.info["fingerprint"], layout],
+    key = artifact_key(backend, source, step, precision, target, [prepared.fingerprint, layout],
                        settings, options)
     final = ws.artifact(backend.name, key)
     if (final / "manifest.json").is_file():
-        return final, json.loads((final / "manifest.json").read_text()), True
+        return Converted(final, json.loads((final / "manifest.json").read_text()), True)
     tmp = final.with_name(f"{final.name}.tmp{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "model").mkdir(parents=True)
@@ -62,7 +74,7 @@ def ensure_artifact(ws: Workspace, backend: Backend, source: SourceModel, step: 
         tmp.rename(final)
     except OSError:  # another process finished the same artifact first: keep theirs
         shutil.rmtree(tmp, ignore_errors=True)
-    return final, json.loads((final / "manifest.json").read_text()), False
+    return Converted(final, json.loads((final / "manifest.json").read_text()), False)
 
 
 def _calibration(reads: list[tuple[int, int]]) -> dict[str, int] | None:

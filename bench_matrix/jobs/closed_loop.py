@@ -10,11 +10,11 @@ import numpy as np
 
 from bench_matrix.backend import Session
 from bench_matrix.data import denormalise
+from bench_matrix.executors.child import phase
 from bench_matrix.images import geometric, to_model_input
 from bench_matrix.jobs import MeasureJob
 from bench_matrix.matrix.spec import CircuitSpec, ClosedLoopSpec, LabelSpec, Preprocess
 from bench_matrix.tensors import SINGLE, TensorSpec, bind
-from bench_matrix.worker import phase
 from bench_matrix.workload.driving.circuit import Track
 from bench_matrix.workload.driving.circuits import builtin_circuit, default_time_limit, user_circuit
 from bench_matrix.workload.driving.lap import NonFiniteCommand, timing_ms

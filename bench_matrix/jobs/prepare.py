@@ -6,7 +6,6 @@ import json
 import os
 import shutil
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -14,9 +13,11 @@ import numpy as np
 from bench_matrix import data
 from bench_matrix.cell import NO_STEP
 from bench_matrix.errors import UserError
+from bench_matrix.executors.child import phase
 from bench_matrix.jobs import DatasetJob, FinetuneJob, ModelJob
 from bench_matrix.jobs.artifact import ensure_artifact, predict_all
 from bench_matrix.jobs.keys import builtin_key, finetune_key, model_key
+from bench_matrix.jobs.results import Finetuned, PreparedData, PreparedModel
 from bench_matrix.matrix.spec import ModelSpec
 from bench_matrix.measure import env as environment
 from bench_matrix.measure.metrics import evaluate, non_finite_reason
@@ -24,11 +25,10 @@ from bench_matrix.registry import load_backend
 from bench_matrix.sources import SourceModel
 from bench_matrix.sources.code import model_code
 from bench_matrix.tensors import TensorSpec, binding_problem, bind, take
-from bench_matrix.worker import phase
 from bench_matrix.workspace import Workspace, file_sha256
 
 
-def prepare_dataset(job: DatasetJob) -> dict[str, Any]:
+def prepare_dataset(job: DatasetJob) -> PreparedData:
     """Read, check, preprocess and split the user's dataset (cached); a mistake in it is a UserError."""
     phase("dataset")
     try:
@@ -36,26 +36,27 @@ def prepare_dataset(job: DatasetJob) -> dict[str, Any]:
     except MemoryError:
         raise UserError(f"{data.source(job.dataset)}: the dataset does not fit in this machine's memory; "
                         f"use fewer samples or smaller images (dataset.preprocess.crop, resize)") from None
-    return {"dir": str(directory), "info": info}
+    return PreparedData(directory, info, job.dataset.preprocess)
 
 
-def prepare_model(job: ModelJob) -> dict[str, Any]:
+def prepare_model(job: ModelJob) -> PreparedModel:
     """Materialise the source model (training built-ins), check it, and compute the fp32 reference outputs."""
     spec, ws, settings, prepared = job.model, job.workspace, job.settings, job.data
     inputs = job.inputs or data.data_inputs(prepared.info, spec.layout)
-    key = model_key(spec, inputs, model_code(spec), job.task, prepared.info["fingerprint"], settings,
+    key = model_key(spec, inputs, model_code(spec), job.task, prepared.fingerprint, settings,
                     [job.baseline.backend, environment.library_versions()])
     out = ws.models(key)
     if (out / "prepared.json").is_file():  # paths are derived afresh: the workspace may be named otherwise now
         source, _ = _source(spec, ws, prepared, settings.seed, inputs)
-        return _prepared(source, json.loads((out / "prepared.json").read_text())["info"], out)
+        info = json.loads((out / "prepared.json").read_text())["info"]
+        return PreparedModel(source, info, out / "reference.npz")
     phase("prepare")
     _check_binding(spec, prepared, inputs)
     source, training = _source(spec, ws, prepared, settings.seed, inputs)
     baseline = load_backend(job.baseline.backend)
-    artifact, manifest, _ = ensure_artifact(ws, baseline, source, NO_STEP, "fp32", "cpu", prepared, spec.layout,
-                                            settings, {})
-    session = baseline.load(artifact / "model", manifest["meta"], "cpu", "fp32", settings.threads)
+    converted = ensure_artifact(ws, baseline, source, NO_STEP, "fp32", "cpu", prepared, spec.layout, settings,
+                                {})
+    session = baseline.load(converted.model, converted.manifest["meta"], "cpu", "fp32", settings.threads)
     x, y = data.load_split(prepared.directory, "test", prepared.preprocess, spec.layout, settings.eval_samples)
     outputs = predict_all(session, bind(x, inputs), settings.batch_size)
     if reason := non_finite_reason(outputs):
@@ -63,7 +64,7 @@ def prepare_model(job: ModelJob) -> dict[str, Any]:
     _check_outputs(spec, job.task, outputs, y, prepared.info)
     out.mkdir(parents=True, exist_ok=True)
     np.savez(out / "reference.npz", *outputs)
-    info = {"framework": spec.framework, "source": job.described, "params": manifest["params"],
+    info = {"framework": spec.framework, "source": job.described, "params": converted.manifest["params"],
             "sha256": source.sha256, "baseline_key": job.baseline.key, "task": job.task,
             "inputs": [i.to_dict() for i in inputs], "outputs": [list(o.shape[1:]) for o in outputs],
             "test_metrics": evaluate(job.task, outputs, y, None), "test_samples": int(len(outputs[0])),
@@ -71,12 +72,7 @@ def prepare_model(job: ModelJob) -> dict[str, Any]:
     if job.task == "regression":
         info["test_mse"] = info["test_metrics"]["mse"]
     (out / "prepared.json").write_text(json.dumps({"info": info}, indent=1))
-    return _prepared(source, info, out)
-
-
-def _prepared(source: SourceModel, info: dict[str, Any], out: Path) -> dict[str, Any]:
-    """A prepared model as the parent takes it: the source, its facts and its fp32 reference outputs."""
-    return {"source": source.to_dict(), "info": info, "reference": str(out / "reference.npz")}
+    return PreparedModel(source, info, out / "reference.npz")
 
 
 def _chance(info: dict[str, Any]) -> dict[str, Any]:
@@ -84,7 +80,7 @@ def _chance(info: dict[str, Any]) -> dict[str, Any]:
     return {k: info[k] for k in ("mean_predictor_mse", "majority_top1", "classes", "label_columns") if k in info}
 
 
-def _check_binding(spec: ModelSpec, prepared: Any, inputs: tuple[TensorSpec, ...]) -> None:
+def _check_binding(spec: ModelSpec, prepared: PreparedData, inputs: tuple[TensorSpec, ...]) -> None:
     given = {i.name: i for i in data.data_inputs(prepared.info, spec.layout)}
     if problem := binding_problem(given, inputs):
         raise UserError(f"model {spec.name}: {problem}")
@@ -108,13 +104,13 @@ def _check_outputs(spec: ModelSpec, task: str, outputs: list[np.ndarray], y: np.
                             f"output to be logits over the {classes} classes of the dataset, shape ({classes},)")
 
 
-def finetune(job: FinetuneJob) -> dict[str, Any]:
+def finetune(job: FinetuneJob) -> Finetuned:
     """Fine-tune the pristine source with the training steps, once per content hash; the new source."""
     from bench_matrix.strategies.base import FineTuneRequest
     from bench_matrix.strategies.registry import load_trainer
 
     ws, source, trainer = job.workspace, job.source, load_trainer(job.trainer)
-    key = finetune_key(trainer, source, job.steps, job.task, [job.data.info["fingerprint"], job.layout],
+    key = finetune_key(trainer, source, job.steps, job.task, [job.data.fingerprint, job.layout],
                        job.seed)
     final = ws.finetuned(key)
     if not (final / "finetuned.json").is_file():
@@ -147,10 +143,10 @@ def finetune(job: FinetuneJob) -> dict[str, Any]:
                         sha256=file_sha256(path), inputs=source.inputs, factory=source.factory,
                         python_path=source.python_path, origin=source.origin or str(source.path),
                         code_sha256=source.code_sha256)
-    return {"source": tuned.to_dict(), "facts": done["facts"]}
+    return Finetuned(tuned, done["facts"])
 
 
-def _source(spec: ModelSpec, ws: Workspace, prepared: Any, seed: int,
+def _source(spec: ModelSpec, ws: Workspace, prepared: PreparedData, seed: int,
             inputs: tuple[TensorSpec, ...]) -> tuple[SourceModel, dict[str, Any] | None]:
     if spec.builtin:
         return _trained_builtin(spec, ws, prepared, seed, inputs)
@@ -163,12 +159,12 @@ def _source(spec: ModelSpec, ws: Workspace, prepared: Any, seed: int,
                         code_sha256=model_code(spec)), None)
 
 
-def _trained_builtin(spec: ModelSpec, ws: Workspace, prepared: Any, seed: int,
+def _trained_builtin(spec: ModelSpec, ws: Workspace, prepared: PreparedData, seed: int,
                      inputs: tuple[TensorSpec, ...]) -> tuple[SourceModel, dict[str, Any]]:
     """The built-in model of spec.framework, trained on the training split once and cached by content."""
     from bench_matrix.workload.pilotnet_torch import FACTORIES
 
-    key = builtin_key(spec, model_code(spec), prepared.info["fingerprint"], seed, environment.library_versions())
+    key = builtin_key(spec, model_code(spec), prepared.fingerprint, seed, environment.library_versions())
     keras = spec.framework == "tensorflow"
     model_file = ws.models(key) / ("model.keras" if keras else "model.pt")
     facts_file = model_file.with_name("training.json")

@@ -4,30 +4,31 @@ and the parameters of factories' forward."""
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 from bench_matrix.backend import Backend
-from bench_matrix.errors import UserError
 from bench_matrix.jobs import ProbeJob
+from bench_matrix.jobs.results import Probe
+from bench_matrix.matrix.expand import TrainingKey, Verdict
 from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.registry import BackendLoadError, load_backend
-from bench_matrix.tensors import specs_to_list
+from bench_matrix.sources.forward_call import Parameter
+from bench_matrix.tensors import TensorSpec
 
 DEFAULT_FORMAT = {"pytorch": "state_dict", "tensorflow": "keras"}  # what built-in models arrive as
 
 
-def probe(job: ProbeJob) -> dict[str, Any]:
+def probe(job: ProbeJob) -> Probe:
     """Backends described, verdicts per combination, trainers per fine-tuning, inputs per model file,
     forward's parameters per factory."""
     backends, described = _load(job.backends)
     keys = job.keys if job.keys is not None else _declared(backends)
     trainers = judge_training(job.training)
-    verdicts = {json.dumps(key): _verdict(backends, described, _converted(key, trainers)) for key in keys}
-    return {"backends": described, "verdicts": verdicts, "trainers": trainers,
-            "inputs": {path: _inputs(framework, fmt, path) for framework, fmt, path in job.model_files},
-            "forwards": {factory: _forward(factory, path) for factory, path in job.factories}}
+    verdicts = {key: _verdict(backends, described, _converted(key, trainers)) for key in keys}
+    return Probe(described, verdicts, trainers,
+                 inputs={path: _inputs(framework, fmt, path) for framework, fmt, path in job.model_files},
+                 forwards={factory: _forward(factory, path) for factory, path in job.factories})
 
 
 def _load(names: tuple[str, ...]) -> tuple[dict[str, Backend | None], dict[str, Any]]:
@@ -48,12 +49,6 @@ def _load(names: tuple[str, ...]) -> tuple[dict[str, Backend | None], dict[str, 
     return backends, described
 
 
-def devices(described: dict[str, Any]) -> dict[tuple[str, str], str]:
-    """(backend, target) -> the device it runs on, from the probe's description of the backends."""
-    return {(name, target): device for name, info in described.items()
-            for target, device in info.get("devices", {}).items()}
-
-
 def _declared(backends: dict[str, Backend | None]) -> list[tuple]:
     """Every combination the loaded backends declare, for a default source of each framework."""
     return [(n, f, st, p, t, DEFAULT_FORMAT.get(f, f), "{}", "") for n, b in backends.items() if b
@@ -61,18 +56,18 @@ def _declared(backends: dict[str, Backend | None]) -> list[tuple]:
             for t in s.targets]
 
 
-def _converted(key: tuple, trainers: dict[str, dict[str, Any]]) -> tuple:
+def _converted(key: tuple, trainers: dict[TrainingKey, Verdict]) -> tuple:
     """The key with the format the backend will really convert: after a fine-tuning, the trainer's output."""
     *head, source_format, options, training = key
-    written = trainers.get(json.dumps(json.loads(training)), {}).get("format") if training else None
-    return (*head, written or source_format, options)
+    judged = trainers.get(tuple(json.loads(training))) if training else None
+    return (*head, (judged and judged.format) or source_format, options)
 
 
-def _verdict(backends: dict[str, Backend | None], described: dict[str, Any], key: tuple) -> dict[str, Any]:
+def _verdict(backends: dict[str, Backend | None], described: dict[str, Any], key: tuple) -> Verdict:
     name, framework, kind, precision, target, source_format, options = key
     b = backends[name]
     if b is None:
-        return {"invalid": None, "skip": described[name]["error"]}
+        return Verdict(skip=described[name]["error"])
     step = StrategySpec(name=kind, kind=kind, options=json.loads(options))
     invalid = b.invalid_reason(framework, kind, precision, target) or b.option_reason(step, source_format)
     try:
@@ -80,10 +75,10 @@ def _verdict(backends: dict[str, Backend | None], described: dict[str, Any], key
         skip = "; ".join(r for r in reasons if r) or None
     except Exception as exc:  # a probe that crashes is a reason, not a crash of the run
         skip = f"probing {name} for {target}/{precision} failed: {type(exc).__name__}: {exc}"
-    return {"invalid": invalid, "skip": skip}
+    return Verdict(invalid, skip)
 
 
-def judge_training(keys: tuple[tuple[str, str, str, str], ...]) -> dict[str, dict[str, Any]]:
+def judge_training(keys: tuple[TrainingKey, ...]) -> dict[TrainingKey, Verdict]:
     """For each (framework, source format, steps, task) the first installed trainer that can apply it, or why
     none can."""
     from bench_matrix.strategies.registry import TrainerLoadError, load_trainer, trainer_names
@@ -100,39 +95,37 @@ def judge_training(keys: tuple[tuple[str, str, str, str], ...]) -> dict[str, dic
         kinds = ", ".join(s.kind or "" for s in steps)
         judged = [(t, t.steps_reason(steps, source_format, task)) for t in trainers if t.framework == framework]
         able = [t for t, r in judged if not r]
-        key = json.dumps([framework, source_format, steps_json, task])
+        key = (framework, source_format, steps_json, task)
         if not able:
             why = "; ".join([f"{t.name}: {r}" for t, r in judged if r] + errors)
-            verdicts[key] = {"invalid": f"{kinds}: {why or f'no installed trainer fine-tunes {framework} models'}"}
+            why = why or f"no installed trainer fine-tunes {framework} models"
+            verdicts[key] = Verdict(invalid=f"{kinds}: {why}")
             continue
         try:
             skip = able[0].probe()
         except Exception as exc:  # a probe that crashes is a reason, not a crash of the run
             skip = f"probing trainer {able[0].name} failed: {type(exc).__name__}: {exc}"
-        verdicts[key] = {"skip": skip, "by": able[0].name, "format": able[0].output_format(steps, source_format)}
+        written = able[0].output_format(steps, source_format)
+        verdicts[key] = Verdict(skip=skip, by=able[0].name, format=written)
     return verdicts
 
 
-def _inputs(framework: str, source_format: str, path: str) -> dict[str, Any]:
-    """The inputs a model file declares ({'inputs': [...]} or None when it does not say), or why it cannot be
-    read ({'error': ...})."""
+def _inputs(framework: str, source_format: str, path: str) -> tuple[TensorSpec, ...] | None:
+    """The inputs a model file declares; None when it does not say or cannot be read."""
     from bench_matrix.sources.model_io import read_inputs
 
     try:
-        found = read_inputs(framework, source_format, Path(path))
-    except UserError as exc:
-        return {"error": str(exc)}
-    except Exception as exc:  # a file we cannot read is the model's failure, reported when it is prepared
-        return {"error": f"{path}: cannot read its inputs: {type(exc).__name__}: {exc}"}
-    return {"inputs": None if found is None else specs_to_list(found)}
+        return read_inputs(framework, source_format, Path(path))
+    except Exception:  # a file we cannot read is the model's failure, reported when it is prepared
+        return None
 
 
-def _forward(factory: str, python_path: tuple[str, ...]) -> list[dict[str, Any]] | None:
+def _forward(factory: str, python_path: tuple[str, ...]) -> tuple[Parameter, ...] | None:
     """The parameters of forward of the module the factory builds; None when it cannot be built."""
     from bench_matrix.sources.forward_call import forward_parameters
     from bench_matrix.sources.pytorch import build_from_factory
 
     try:
-        return [asdict(p) for p in forward_parameters(build_from_factory(factory, python_path))]
+        return tuple(forward_parameters(build_from_factory(factory, python_path)))
     except Exception:  # the model's failure (torch missing included), reported when the model is prepared
         return None

@@ -108,9 +108,9 @@ def combinations(matrix: Matrix, installed: Iterable[str]) -> tuple[list[Cell], 
     return list(cells), excluded
 
 
-def plan(matrix: Matrix, cells: list[Cell], excluded: int, verdicts: Mapping[VerdictKey, Verdict],
-         trainers: Mapping[TrainingKey, Verdict] | None = None,
-         baselines: Mapping[str, str] | None = None) -> Expansion:
+def judge(matrix: Matrix, cells: list[Cell], excluded: int, verdicts: Mapping[VerdictKey, Verdict],
+          trainers: Mapping[TrainingKey, Verdict] | None = None,
+          baselines: Mapping[str, str] | None = None) -> Expansion:
     """Judge each candidate (invalid: no trainer, backend does not do it; skip; run) and resolve its steps and
     its baseline cell (`baselines`: framework -> the backend computing its fp32 reference)."""
     planned = []
@@ -118,7 +118,7 @@ def plan(matrix: Matrix, cells: list[Cell], excluded: int, verdicts: Mapping[Ver
         strategy = matrix.strategies[cell.strategy]
         key = training_key(matrix, cell)
         training = (trainers or {}).get(key) if key else None
-        state, reason = _judge(cell, key, training, verdicts[verdict_key(matrix, cell)])
+        state, reason = _state(cell, key, training, verdicts[verdict_key(matrix, cell)])
         backend = (baselines or {}).get(cell.framework)
         baseline = Cell(cell.model, cell.framework, backend, "none", "fp32", "cpu") if backend else None
         planned.append(CellPlan(cell, state, reason, step=backend_kind(strategy), training=training_steps(strategy),
@@ -126,7 +126,8 @@ def plan(matrix: Matrix, cells: list[Cell], excluded: int, verdicts: Mapping[Ver
     return Expansion(cells=tuple(planned), excluded=excluded)
 
 
-def _judge(cell: Cell, key: TrainingKey | None, training: Verdict | None, verdict: Verdict) -> tuple[str, str | None]:
+def _state(cell: Cell, key: TrainingKey | None, training: Verdict | None,
+           verdict: Verdict) -> tuple[str, str | None]:
     if key and training is None:
         return "invalid", f"strategy {cell.strategy} fine-tunes the model; no installed trainer judged it"
     if training and training.invalid:

@@ -1,8 +1,7 @@
-"""A cell's own jobs: convert its source into its artifact, then load, time and evaluate that artifact."""
+"""The measure job: load a cell's artifact, time it, evaluate its outputs (and drive laps with it)."""
 
 from __future__ import annotations
 
-import base64
 import hashlib
 import resource
 import time
@@ -11,9 +10,11 @@ from typing import Any
 import numpy as np
 
 from bench_matrix import data, hardware
-from bench_matrix.jobs import ConvertJob, MeasureJob
-from bench_matrix.jobs.artifact import ensure_artifact, predict_all
+from bench_matrix.executors.child import phase, waiting
+from bench_matrix.jobs import MeasureJob
+from bench_matrix.jobs.artifact import predict_all
 from bench_matrix.jobs.closed_loop import drive_all
+from bench_matrix.jobs.results import Measured
 from bench_matrix.matrix.spec import Settings
 from bench_matrix.measure import env as environment
 from bench_matrix.measure.affinity import pin_threads
@@ -33,7 +34,6 @@ from bench_matrix.measure.timing import (
 )
 from bench_matrix.registry import load_backend
 from bench_matrix.tensors import bind, resize, take
-from bench_matrix.worker import phase, waiting
 
 LATENCY_INPUTS = 16
 LIMITS = Limits()  # interference above these re-measures a timed phase, then flags the cell
@@ -46,18 +46,10 @@ class NonFiniteOutputs(Exception):
     """The cell's outputs hold NaN or Inf: a failure, never a result."""
 
 
-def convert(job: ConvertJob) -> dict[str, Any]:
-    phase("convert")
-    artifact, manifest, cached = ensure_artifact(
-        job.workspace, load_backend(job.cell.backend), job.source, job.step, job.cell.precision, job.cell.target,
-        job.data, job.layout, job.settings, job.options)
-    return {"artifact_dir": str(artifact), "manifest": manifest, "cached": cached}
-
-
-def measure(job: MeasureJob) -> dict[str, Any]:
+def measure(job: MeasureJob) -> Measured:
     """Pin, load, time at batch 1 and throughput holding the machine's timing slot, record peak memory, then
-    evaluate the outputs; the raw latencies come back packed (base64) under "samples"."""
-    cell, settings, prepared = job.cell, job.settings, job.data
+    evaluate the outputs; the raw latencies come back packed."""
+    cell, settings, prepared, converted = job.cell, job.settings, job.data, job.converted
     backend = load_backend(cell.backend)
     few, _ = data.load_split(prepared.directory, "test", prepared.preprocess, job.layout,
                              max(LATENCY_INPUTS, settings.batch_size))
@@ -67,7 +59,7 @@ def measure(job: MeasureJob) -> dict[str, Any]:
     cpus = pin_threads(settings.threads)  # before the load, so the runtime's threads inherit the affinity
     phase("load")
     begin = time.perf_counter()
-    session = backend.load(job.artifact_dir / "model", job.manifest["meta"], cell.target, cell.precision,
+    session = backend.load(converted.model, converted.manifest["meta"], cell.target, cell.precision,
                            settings.threads)
     load_s = time.perf_counter() - begin
     hosts = [take(few, slice(i, i + 1)) for i in range(min(LATENCY_INPUTS, len(next(iter(few.values())))))]
@@ -79,27 +71,38 @@ def measure(job: MeasureJob) -> dict[str, Any]:
     timing = {**_timing_metrics(phases), "timing_window": window.as_dict(), "cpu_affinity": cpus}
     peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     phase("evaluate")
+    accuracy, outputs = _evaluate(job, session)
+    manifest = converted.manifest
+    metrics = {**artifact_size(converted.model, converted.directory / "size.json"),
+               "params": manifest["params"], **accuracy, "outputs_sha256": outputs_digest(outputs), **timing,
+               **_gpu_metrics(gpu_memory), "batch_size": settings.batch_size,
+               "peak_rss_mb": round(peak_rss_mb, 1), "convert_s": manifest["convert_s"], "load_s": load_s,
+               "threads": settings.threads, "artifact_cached": converted.cached, "session": session.info(),
+               "test_samples": int(len(outputs[0])), **_finetune_metrics(job.finetune, manifest["convert_s"])}
+    if manifest.get("calibration"):  # how many calibration samples were asked for and used
+        metrics["calibration"] = manifest["calibration"]
+    if job.closed_loop is not None:  # laps with this session, after every timed loop (docs/closed-loop.md)
+        metrics.update(drive_all(session, job))
+    env = {**environment.capture(), "backend_versions": backend.versions(), "runtime": session.info()}
+    return Measured(metrics, _packed(phases), env)
+
+
+def _evaluate(job: MeasureJob, session: Any) -> tuple[dict[str, Any], list[np.ndarray]]:
+    """The accuracy metrics on the test split (against the labels and the baseline's outputs) and the
+    outputs; NonFiniteOutputs when they hold NaN or Inf."""
+    prepared, settings = job.data, job.settings
     x, y = data.load_split(prepared.directory, "test", prepared.preprocess, job.layout, settings.eval_samples)
     outputs = predict_all(session, bind(x, job.source.inputs), settings.batch_size)
     if reason := non_finite_reason(outputs):
         raise NonFiniteOutputs(f"the cell's outputs on the test split are not finite: {reason}")
-    gpu: dict[str, Any] = {}
-    if gpu_memory is not None:
-        gpu.update(gpu_name=hardware.gpus()[0].name if hardware.gpus() else None, **gpu_memory.peak())
-    reference = _reference(job)
-    metrics = {**artifact_size(job.artifact_dir / "model", job.artifact_dir / "size.json"),
-               "params": job.manifest["params"], **evaluate(job.task, outputs, y, reference, job.metrics),
-               "outputs_sha256": outputs_digest(outputs), **timing, **gpu, "batch_size": settings.batch_size,
-               "peak_rss_mb": round(peak_rss_mb, 1), "convert_s": job.manifest["convert_s"], "load_s": load_s,
-               "threads": settings.threads, "artifact_cached": job.cached, "session": session.info(),
-               "test_samples": int(len(outputs[0])),
-               **_finetune_metrics(job.finetune, job.manifest["convert_s"])}
-    if job.manifest.get("calibration"):  # how many calibration samples were asked for and used
-        metrics["calibration"] = job.manifest["calibration"]
-    if job.closed_loop is not None:  # laps with this session, after every timed loop (docs/closed-loop.md)
-        metrics.update(drive_all(session, job))
-    env = {**environment.capture(), "backend_versions": backend.versions(), "runtime": session.info()}
-    return {"metrics": metrics, "samples": _packed(phases), "env": env}
+    return evaluate(job.task, outputs, y, _reference(job), job.metrics), outputs
+
+
+def _gpu_metrics(gpu_memory: GpuMemory | None) -> dict[str, Any]:
+    """On a GPU: its name and the cell's peak GPU memory."""
+    if gpu_memory is None:
+        return {}
+    return {"gpu_name": hardware.gpus()[0].name if hardware.gpus() else None, **gpu_memory.peak()}
 
 
 def _timed_phases(session: Any, singles: list[Any], hosts: list[Any], batch: Any, settings: Settings,
@@ -127,10 +130,10 @@ def _timing_metrics(phases: dict[str, Phase[Any]]) -> dict[str, Any]:
     return timing
 
 
-def _packed(phases: dict[str, Phase[Any]]) -> dict[str, str]:
-    """The kept raw durations of each sampled series, as base64 of pack_samples (compact inside the JSON)."""
-    return {name: base64.b64encode(pack_samples(phases[timed].result[key] if key else phases[timed].result))
-            .decode() for name, (timed, key) in SAMPLED.items() if timed in phases}
+def _packed(phases: dict[str, Phase[Any]]) -> dict[str, bytes]:
+    """The kept raw durations of each sampled series, packed (stats.pack_samples)."""
+    return {name: pack_samples(phases[timed].result[key] if key else phases[timed].result)
+            for name, (timed, key) in SAMPLED.items() if timed in phases}
 
 
 def _reference(job: MeasureJob) -> list[np.ndarray] | None:

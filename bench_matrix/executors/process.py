@@ -1,5 +1,5 @@
-"""Run one job in its own process with a timeout; wait without polling while the child measures or waits for
-the machine's timing lock (that wait does not count against the timeout)."""
+"""The parent side of the local executor's process protocol: run one job in a child process (child.py) with a
+time limit, not counting its waits for the machine's timing lock; no polling while it measures."""
 
 from __future__ import annotations
 
@@ -17,7 +17,8 @@ from pathlib import Path
 from typing import Any
 
 from bench_matrix.errors import UserError
-from bench_matrix.worker import WAITING_MARK
+from bench_matrix.executors.child import PHASE_FD, WAITING_MARK
+from bench_matrix.executors.codec import from_json
 
 TAIL_LINES = 12
 LONGEST_WAIT_S = 1e9  # ~31 years: a longer (or infinite) limit waits as long; keeps every timer representable
@@ -26,9 +27,9 @@ THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"
 
 @dataclass(frozen=True)
 class Outcome:
-    """How a child ended: its job's value, or why it failed (error text, log tail)."""
+    """How a child ended: its job's typed result, or why it failed (error text, log tail)."""
 
-    value: Any = None
+    result: Any = None
     error: str | None = None
     user_error: bool = False
 
@@ -37,11 +38,11 @@ class Outcome:
         return self.error is None
 
 
-def run_job(job: Any, workdir: Path, log: Path, timeout_s: float, threads: int | None = None,
-            on_phase: Callable[[str], None] = lambda _: None,
-            tick: Callable[[], None] = lambda: None) -> Outcome:
-    """Start `python -m bench_matrix.worker` on `job` (a typed job: its `mode` names the function that runs
-    it); kill its process group at `timeout_s`, not counting time it waits for the machine's timing lock."""
+def run_in_process(job: Any, workdir: Path, log: Path, timeout_s: float, threads: int | None = None,
+                   on_phase: Callable[[str], None] = lambda _: None,
+                   tick: Callable[[], None] = lambda: None) -> Outcome:
+    """Start `python -m bench_matrix.executors.child` on `job` (its class names the function that runs it and
+    its result's type); kill its process group at `timeout_s`, not counting waits for the timing lock."""
     if not timeout_s > 0:  # also NaN
         raise UserError(f"a time limit must be a positive number of seconds, got {timeout_s!r} "
                         f"(settings.timeout_s)")
@@ -51,17 +52,7 @@ def run_job(job: Any, workdir: Path, log: Path, timeout_s: float, threads: int |
     job_path, result_path = workdir / f"{stem}.pickle", workdir / f"{stem}.json"
     job_path.write_bytes(pickle.dumps(job))
     read_fd, write_fd = os.pipe()
-    env = dict(os.environ, BENCH_MATRIX_PHASE_FD=str(write_fd), PYTHONUNBUFFERED="1")
-    if threads is not None:
-        env.update({name: str(threads) for name in THREAD_VARIABLES})
-    with open(log, "ab") as log_file:
-        log_file.write(f"\n=== {job.mode} {time.strftime('%Y-%m-%d %H:%M:%S')} ===\n".encode())
-        log_file.flush()
-        proc = subprocess.Popen([sys.executable, "-m", "bench_matrix.worker", str(job_path),
-                                 str(result_path)], stdin=subprocess.DEVNULL,
-                                stdout=log_file, stderr=subprocess.STDOUT, pass_fds=(write_fd,), env=env,
-                                start_new_session=True)
-    os.close(write_fd)
+    proc = _start(job, job_path, result_path, log, threads, write_fd)
     deadline = _Deadline(min(timeout_s, LONGEST_WAIT_S))
     try:
         timed_out, last_phase = _wait(proc, read_fd, deadline, on_phase, tick)
@@ -76,18 +67,40 @@ def run_job(job: Any, workdir: Path, log: Path, timeout_s: float, threads: int |
                       if deadline.waited_s else "")
             return Outcome(error=f"timed out after {timeout_s:g} s (in phase '{last_phase}'{waited}); "
                                  f"raise settings.timeout_s if this cell needs longer. Log: {log}")
-        if result_path.is_file():
-            result = json.loads(result_path.read_text())
-            if result["ok"]:
-                return Outcome(value=result["value"])
-            if result.get("user_error"):  # the user's mistake: the message alone says what to fix
-                return Outcome(error=result["error"], user_error=True)
-            return Outcome(error=_reason(result["error"], result.get("traceback", "")))
-        return Outcome(error=f"the process died ({_describe_exit(proc.returncode)}) in phase '{last_phase}'; "
-                             f"last lines of {log}:\n{_tail(log)}")
+        return _outcome(job, proc, result_path, log, last_phase)
     finally:
         job_path.unlink(missing_ok=True)
         result_path.unlink(missing_ok=True)
+
+
+def _start(job: Any, job_path: Path, result_path: Path, log: Path, threads: int | None,
+           write_fd: int) -> subprocess.Popen:
+    """The child, in its own session, its output appended to the log, its phases written to `write_fd`."""
+    env = {**os.environ, PHASE_FD: str(write_fd), "PYTHONUNBUFFERED": "1"}
+    if threads is not None:
+        env.update({name: str(threads) for name in THREAD_VARIABLES})
+    with open(log, "ab") as log_file:
+        log_file.write(f"\n=== {type(job).function} {time.strftime('%Y-%m-%d %H:%M:%S')} ===\n".encode())
+        log_file.flush()
+        proc = subprocess.Popen([sys.executable, "-m", "bench_matrix.executors.child", str(job_path),
+                                 str(result_path)], stdin=subprocess.DEVNULL,
+                                stdout=log_file, stderr=subprocess.STDOUT, pass_fds=(write_fd,), env=env,
+                                start_new_session=True)
+    os.close(write_fd)
+    return proc
+
+
+def _outcome(job: Any, proc: subprocess.Popen, result_path: Path, log: Path, last_phase: str) -> Outcome:
+    """How a child that was not timed out ended: its typed result, its error, or how it died."""
+    if result_path.is_file():
+        result = json.loads(result_path.read_text())
+        if result["ok"]:
+            return Outcome(result=from_json(type(job).result, result["value"]))
+        if result.get("user_error"):  # the user's mistake: the message alone says what to fix
+            return Outcome(error=result["error"], user_error=True)
+        return Outcome(error=_reason(result["error"], result.get("traceback", "")))
+    return Outcome(error=f"the process died ({_describe_exit(proc.returncode)}) in phase '{last_phase}'; "
+                         f"last lines of {log}:\n{_tail(log)}")
 
 
 class _Deadline:

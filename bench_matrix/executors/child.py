@@ -1,5 +1,5 @@
-"""Entry point of every child process: `python -m bench_matrix.worker JOB.pickle RESULT.json` runs one typed
-job and writes its outcome."""
+"""The child side of the local executor's process protocol: `python -m bench_matrix.executors.child JOB.pickle
+RESULT.json` runs one job and writes its result as JSON; `phase` and `waiting` tell the parent where it is."""
 
 from __future__ import annotations
 
@@ -15,14 +15,15 @@ import warnings
 from pathlib import Path
 
 from bench_matrix.errors import UserError
+from bench_matrix.executors.codec import to_json
 
-
+PHASE_FD = "BENCH_MATRIX_PHASE_FD"  # names the pipe the child writes its phase lines to
 WAITING_MARK = "waiting:"  # a phase line starting with it: the job waits for the machine's timing lock
 
 
 def phase(name: str) -> None:
     """Tell the parent which phase began (it stays silent while we measure); one line per phase."""
-    fd = os.environ.get("BENCH_MATRIX_PHASE_FD")
+    fd = os.environ.get(PHASE_FD)
     if fd:
         try:
             os.write(int(fd), f"{' '.join(name.split())}\n".encode())
@@ -48,9 +49,9 @@ def die_with_parent() -> None:
         os._exit(1)
 
 
-def _function(mode: str):
-    """The function that runs a job: 'module:function'."""
-    module, _, name = mode.partition(":")
+def _function(job: object):
+    """The function that runs a job: its class's 'module:function'."""
+    module, _, name = type(job).function.partition(":")
     return getattr(importlib.import_module(module), name)
 
 
@@ -60,7 +61,7 @@ def main(argv: list[str]) -> int:
     result_path = Path(argv[1])
     warnings.filterwarnings("ignore", category=DeprecationWarning)
     try:
-        result = {"ok": True, "value": _function(job.mode)(job)}
+        result = {"ok": True, "value": to_json(_function(job)(job))}
         code = 0
     except Exception as exc:  # everything a job raises is reported to the parent as the cell's reason
         traceback.print_exc()
