@@ -6,7 +6,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from bench_matrix.matrix.spec import ClosedLoopSpec, LabelSpec, StrategySpec
+from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.scenarios.base import Planned
 
 PlanState = Literal["run", "skip", "invalid"]
 
@@ -40,24 +41,10 @@ NO_STEP = StrategySpec(name="none", kind="none")
 
 
 @dataclass(frozen=True)
-class ClosedLoopPlan:
-    """The closed-loop part of a cell: the laps to drive and how the model's outputs become raw [v, w] (its
-    dataset's label normalisation), or why its model cannot drive (`skip`)."""
-
-    spec: ClosedLoopSpec
-    labels: LabelSpec
-    skip: str | None = None
-
-    def fingerprint(self) -> dict:
-        """What the closed-loop results depend on (the cell's own fingerprint covers the model and data)."""
-        return {"drive": self.spec.drive_dict(), "skip": self.skip}
-
-
-@dataclass(frozen=True)
 class CellPlan:
     """A cell decided once, in the parent: what `run` does with it (run, skip or reject, and why), the
-    conversion step its backend performs, the fine-tuning before it and by whom, its baseline cell, its log and
-    the fingerprint of everything that determines its result."""
+    conversion step its backend performs, the fine-tuning before it and by whom, its baseline cell, its log,
+    the fingerprint of everything that determines its result and the scenarios it runs after latency."""
 
     cell: Cell
     state: PlanState
@@ -68,4 +55,4 @@ class CellPlan:
     baseline: Cell | None = None  # the model's fp32 reference cell
     log: Path | None = field(default=None, compare=False)
     fingerprint: str = ""
-    closed_loop: ClosedLoopPlan | None = None  # None: the cell is not driven
+    scenarios: tuple[Planned, ...] = ()  # measured after the latency scenario, in order

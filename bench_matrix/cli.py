@@ -228,10 +228,10 @@ def _backends(args: argparse.Namespace, console) -> int:
 
 
 def _schema(args: argparse.Namespace, console) -> int:
-    from bench_matrix.matrix.schema import SCHEMA, installed_schema, schema_json
+    from bench_matrix.matrix.schema import installed_schema, schema_json
 
     if args.builtin:
-        sys.stdout.write(schema_json(SCHEMA))
+        sys.stdout.write(schema_json())
         return 0
     from bench_matrix.measure.metric_plugins import metric_names
     from bench_matrix.registry import vocabulary

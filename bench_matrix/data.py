@@ -22,11 +22,11 @@ from bench_matrix.images import (GEOMETRIC, check_preprocess, geometric, geometr
 from bench_matrix.matrix.spec import DatasetSpec, LabelSpec, Preprocess
 from bench_matrix.tensors import SINGLE, Inputs, TensorSpec, count, random_inputs, specs_to_list
 from bench_matrix.sources.code import module_file
+from bench_matrix.workload.driving import defaults
 from bench_matrix.workspace import Workspace, digest, tree_sha256
 
 SPLITS = ("train", "calibration", "test")
 FORMAT = 2  # of the cache: {split}__{input}.npy per input, {split}__y.npy, info.json
-BUILTIN_TASKS = {"driving": "regression", "driving_bends": "classification"}
 
 
 @dataclass(frozen=True)
@@ -284,7 +284,7 @@ def _builtin(spec: DatasetSpec) -> Raw:
     """The rendered driving scenes, labelled (v, w) for regression or by bend class."""
     from bench_matrix.workload.driving import BEND_CLASSES, bend_classes, generate
 
-    task = BUILTIN_TASKS.get(spec.builtin)
+    task = defaults.TASKS.get(spec.builtin)
     if task is None:
         raise UserError(f"dataset.builtin: '{spec.builtin}' is not a built-in dataset; choose one of "
                         f"{', '.join(BUILTIN_TASKS)}")

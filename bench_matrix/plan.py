@@ -1,6 +1,7 @@
 """Resolve a matrix once, in the parent, into a typed plan: every cell decided (run, skip, invalid, why), its
-steps, trainer, baseline, log and fingerprint; every model's task, inputs and baseline; mistakes found before
-anything runs are a MatrixError (exit 2)."""
+steps, trainer, baseline, log, fingerprint and
+scenarios; every model's task, inputs and baseline; mistakes found before anything runs are a MatrixError
+(exit 2)."""
 
 from __future__ import annotations
 
@@ -9,17 +10,18 @@ from pathlib import Path
 from typing import Any
 
 from bench_matrix import __version__, data
-from bench_matrix.cell import Cell, CellPlan, ClosedLoopPlan
+from bench_matrix.cell import Cell, CellPlan
 from bench_matrix.errors import MatrixError, UserError
 from bench_matrix.executors.local import probe_here
 from bench_matrix.jobs import ProbeJob
 from bench_matrix.jobs.results import Probe
-from bench_matrix.matrix.closed_loop import drive_problem
 from bench_matrix.matrix.expand import combinations, judge, training_key, verdict_key
 from bench_matrix.matrix.spec import DatasetSpec, Matrix, ModelSpec
 from bench_matrix.matrix.yamlpos import format_path
 from bench_matrix.measure import env as environment
 from bench_matrix.registry import available
+from bench_matrix.scenarios import selectable
+from bench_matrix.scenarios.base import Planned
 from bench_matrix.sources.code import model_code
 from bench_matrix.sources.forward_call import call_problem
 from bench_matrix.tensors import TensorSpec, binding_problem
@@ -65,9 +67,9 @@ def resolve(matrix: Matrix, workspace: Workspace) -> Plan:
     models = {m.name: _model_plan(matrix, m, probe.inputs, baselines, workspace) for m in matrix.models}
     _check_models(matrix, models, probe)
     prints = Fingerprints(matrix, probe.backends)
-    driven = (replace(p, log=workspace.cell_log(p.cell.key), closed_loop=closed_loop_plan(matrix, p.cell))
-              for p in expansion.cells)
-    decided = tuple(replace(p, fingerprint=prints.cell(p)) for p in driven)
+    planned = (replace(p, log=workspace.cell_log(p.cell.key), scenarios=scenarios_of(matrix, p.cell))
+               for p in expansion.cells)
+    decided = tuple(replace(p, fingerprint=prints.cell(p)) for p in planned)
     return Plan(matrix, decided, models, excluded, probe.backends)
 
 
@@ -87,14 +89,11 @@ def _probe(matrix: Matrix, cells: list[Cell], installed: list[str], workspace: W
     return ended.result
 
 
-def closed_loop_plan(matrix: Matrix, cell: Cell) -> ClosedLoopPlan | None:
-    """The cell's laps when the closed_loop section selects it (with why its model cannot drive, if so)."""
-    spec = matrix.closed_loop
-    if spec is None or not spec.selects(cell.as_dict()):
-        return None
-    model = matrix.model(cell.model)
-    dataset = matrix.dataset_of(model)
-    return ClosedLoopPlan(spec, dataset.labels, drive_problem(model, dataset, matrix.task_of(model)))
+def scenarios_of(matrix: Matrix, cell: Cell) -> tuple[Planned, ...]:
+    """The scenarios the matrix's sections select for the cell, in matrix order."""
+    sections = matrix.scenarios
+    chosen = (s.plan(sections[s.name], matrix, cell) for s in selectable() if s.name in sections)
+    return tuple(p for p in chosen if p is not None)
 
 
 def _model_plan(matrix: Matrix, model: ModelSpec, read: dict[str, tuple[TensorSpec, ...] | None],
@@ -184,7 +183,7 @@ class Fingerprints:
                        "settings": {k: v for k, v in m.settings.to_dict().items()
                                     if k not in ("timeout_s", "passes")},  # neither changes what is measured
                        "metrics": list(m.metrics), "version": __version__,
-                       **({"closed_loop": planned.closed_loop.fingerprint()} if planned.closed_loop else {})})
+                       **{s.name: s.fingerprint() for s in planned.scenarios}})
 
     def model(self, model: ModelSpec) -> dict[str, Any]:
         portable = asdict(model)

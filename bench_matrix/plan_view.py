@@ -16,6 +16,7 @@ from bench_matrix.matrix.expand import Verdict, VerdictKey
 from bench_matrix.measure import env as environment
 from bench_matrix.plan import Plan
 from bench_matrix.registry import available, vocabulary
+from bench_matrix.scenarios import selectable
 from bench_matrix.selection import Filters
 from bench_matrix.store import ResultStore
 from bench_matrix.workspace import Workspace
@@ -33,9 +34,9 @@ def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, res
     here, passes = {environment.host_name()}, plan.matrix.settings.passes
     cells = [p for p in plan.cells if filters.keep(p.cell)]
     table = Table(title=f"cells of {plan.matrix.path}")
-    driving = plan.matrix.closed_loop is not None
+    scenarios = [s for s in selectable() if s.name in plan.matrix.scenarios]
     for column in ("model", "backend", "strategy", "precision", "target", "state", "reason",
-                   *(("closed loop",) if driving else ())):
+                   *(s.title for s in scenarios)):
         table.add_column(column, overflow="fold")
     counts = {"run": 0, "stored": 0, "skip": 0, "invalid": 0}
     for p in sorted((p for p in cells if p.state != "invalid"), key=lambda p: (p.state, p.cell)):
@@ -44,7 +45,7 @@ def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, res
         counts[state] += 1
         c = p.cell
         table.add_row(c.model, c.backend, c.strategy, c.precision, c.target, STATE_STYLE[state],
-                      escape(p.reason or ""), *((_laps(p),) if driving else ()))
+                      escape(p.reason or ""), *(_planned(p, s.name) for s in scenarios))
     console.print(table)
     invalid = [p for p in cells if p.state == "invalid"]
     counts["invalid"] = len(invalid)
@@ -56,14 +57,9 @@ def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, res
         store.close()
 
 
-def _laps(p: CellPlan) -> str:
-    """What the cell drives after its offline measurement: circuits × modes, or why it cannot drive."""
-    if p.closed_loop is None:
-        return "—"
-    if p.closed_loop.skip:
-        return f"[yellow]not driven:[/] {escape(p.closed_loop.skip)}"
-    spec = p.closed_loop.spec
-    return f"{', '.join(c.name for c in spec.circuits)} × {', '.join(spec.modes)}"
+def _planned(p: CellPlan, name: str) -> str:
+    """What the cell runs of scenario `name` after its latency, or a dash."""
+    return next((s.describe() for s in p.scenarios if s.name == name), "—")
 
 
 def _invalid_table(invalid: list[CellPlan], show_all: bool) -> Table:

@@ -18,6 +18,7 @@ from bench_matrix.jobs.results import Converted, PreparedData, PreparedModel
 from bench_matrix.measure import env as environment
 from bench_matrix.plan import ModelPlan, Plan
 from bench_matrix.progress import RunProgress
+from bench_matrix.scenarios.base import fields
 from bench_matrix.selection import Filters, Shard
 from bench_matrix.sources import SourceModel
 from bench_matrix.store import CellRecord, ResultStore
@@ -37,10 +38,12 @@ class _Ready:
 
 @dataclass(frozen=True)
 class _Again:
-    """An ok cell that later passes measure again: its record, its measurement job and where it ran."""
+    """An ok cell that later passes measure again: its record, its measurement job (with the scenarios that
+    repeat), the scenarios whose first-pass fields the record keeps, and where it ran."""
 
     record: CellRecord
     job: MeasureJob
+    kept: tuple[str, ...]
     limits: Limits
     where: Any
 
@@ -206,7 +209,7 @@ class Runner:
 
         def measure(converted: Converted) -> MeasureJob:
             return MeasureJob(self.ws, p.cell, model.task, converted, source, ready.data, model.spec.layout,
-                              settings, ready.prepared.reference, self.matrix.metrics, facts, p.closed_loop)
+                              settings, ready.prepared.reference, self.matrix.metrics, facts, p.scenarios)
 
         self._submit(Work(job, self._limits(p), then=measure),
                      lambda ended: self._cell_ended(p, started, ended))
@@ -228,8 +231,10 @@ class Runner:
         metrics = {**measured.metrics, "latency_passes_p50": [measured.metrics["latency_ms"]["p50"]]}
         record = self._record(p, "ok", None, started, metrics=metrics, env=measured.env, artifact=artifact)
         self._finished(record, measured.samples)
-        self._again[p.cell] = _Again(record, replace(ended.jobs[-1], closed_loop=None), self._limits(p),
-                                     ended.where)
+        job = ended.jobs[-1]
+        again = replace(job, scenarios=tuple(s for s in job.scenarios if s.repeat))
+        kept = tuple(s.name for s in job.scenarios if not s.repeat)
+        self._again[p.cell] = _Again(record, again, kept, self._limits(p), ended.where)
 
     def _finished(self, record: CellRecord, samples: dict[str, bytes] | None = None) -> None:
         self.store.put(record, samples)
@@ -245,17 +250,18 @@ class Runner:
 
     def _measure_again(self, again: _Again) -> None:
         work = Work(again.job, again.limits, on=again.where)  # on the machine holding the artifact
-        self._submit(work, lambda ended: self._passed(again.record, ended))
+        self._submit(work, lambda ended: self._passed(again, ended))
         self._drain(wait=True)
 
-    def _passed(self, record: CellRecord, ended: Ended) -> None:
+    def _passed(self, again: _Again, ended: Ended) -> None:
+        record = again.record
         passes, samples = record.metrics["latency_passes_p50"], None
         if ended.ok:
             new = ended.result.metrics
             passes.append(new["latency_ms"]["p50"])
             if _disturbance(new) < _disturbance(record.metrics):
-                laps = {k: v for k, v in record.metrics.items() if k.startswith("closed_loop")}
-                record.metrics = {**new, **laps, "latency_passes_p50": passes}
+                once = {k: v for name in again.kept for k, v in fields(name, record.metrics).items()}
+                record.metrics = {**new, **once, "latency_passes_p50": passes}
                 record.env, samples = ended.result.env, ended.result.samples
         else:
             record.metrics["latency_passes_failed"] = record.metrics.get("latency_passes_failed", 0) + 1

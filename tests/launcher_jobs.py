@@ -8,7 +8,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from bench_matrix.executors.child import phase
+from bench_matrix.phases import phase
 
 
 @dataclass(frozen=True)

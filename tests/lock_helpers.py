@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import ClassVar
 
 from bench_matrix.measure.machine_lock import timing_slot
-from bench_matrix.executors.child import phase, waiting
+from bench_matrix.phases import phase, waiting
 
 
 @dataclass(frozen=True)

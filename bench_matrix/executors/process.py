@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from bench_matrix.errors import UserError
-from bench_matrix.executors.child import PHASE_FD, WAITING_MARK
+from bench_matrix.phases import PHASE_FD, WAITING_MARK
 from bench_matrix.executors.codec import from_json
 
 TAIL_LINES = 12

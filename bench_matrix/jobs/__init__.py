@@ -7,10 +7,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-from bench_matrix.cell import Cell, ClosedLoopPlan
+from bench_matrix.cell import Cell
 from bench_matrix.jobs.results import Converted, Finetuned, Measured, PreparedData, PreparedModel, Probe
 from bench_matrix.matrix.expand import TrainingKey, VerdictKey
 from bench_matrix.matrix.spec import DatasetSpec, ModelSpec, Settings, StrategySpec
+from bench_matrix.scenarios.base import Planned
 from bench_matrix.sources import SourceModel
 from bench_matrix.tensors import TensorSpec
 from bench_matrix.workspace import Workspace
@@ -123,8 +124,8 @@ class ConvertJob(Job):
 
 @dataclass(frozen=True)
 class MeasureJob(Job):
-    """Load a converted artifact, time it, evaluate it against the labels and the baseline's outputs (and
-    drive laps with it when `closed_loop` says so)."""
+    """Load a converted artifact, time it, evaluate it against the labels and the baseline's outputs (the
+    latency scenario), then run the cell's other planned scenarios with it."""
 
     name = "measure"
     function = "bench_matrix.jobs.measure:measure"
@@ -139,7 +140,7 @@ class MeasureJob(Job):
     reference: Path | None
     metrics: tuple[str, ...] = ()
     finetune: dict[str, Any] | None = None
-    closed_loop: ClosedLoopPlan | None = None  # laps to drive with the loaded session, after the evaluation
+    scenarios: tuple[Planned, ...] = ()  # run with the loaded session after the latency scenario
 
     def reads(self) -> tuple[Path, ...]:
         return tuple(p for p in (self.data.directory, self.reference) if p is not None)

@@ -14,7 +14,7 @@ import numpy as np
 
 from bench_matrix import data
 from bench_matrix.backend import Backend, ConvertRequest, Session
-from bench_matrix.executors.child import phase
+from bench_matrix.phases import phase
 from bench_matrix.jobs import ConvertJob
 from bench_matrix.jobs.keys import artifact_key, calibrates, intermediates_key, params_key
 from bench_matrix.jobs.results import Converted, PreparedData

@@ -13,7 +13,7 @@ import numpy as np
 from bench_matrix import data
 from bench_matrix.cell import NO_STEP
 from bench_matrix.errors import UserError
-from bench_matrix.executors.child import phase
+from bench_matrix.phases import phase
 from bench_matrix.jobs import DatasetJob, FinetuneJob, ModelJob
 from bench_matrix.jobs.artifact import ensure_artifact, predict_all
 from bench_matrix.jobs.keys import builtin_key, finetune_key, model_key

@@ -11,7 +11,6 @@ import jsonschema
 
 from bench_matrix.errors import MatrixError
 from bench_matrix.matrix import load_data, paths
-from bench_matrix.matrix.closed_loop import closed_loop
 from bench_matrix.matrix.schema import (
     BUILTIN_FRAMEWORKS,
     BUILTIN_MODELS,
@@ -34,12 +33,14 @@ from bench_matrix.matrix.spec import (
     file_kind,
 )
 from bench_matrix.matrix.yamlpos import Located, load_with_lines, suggest
+from bench_matrix.scenarios import selectable
+from bench_matrix.scenarios.base import Loading
 from bench_matrix.workspace import not_regular
 
 if TYPE_CHECKING:
     from bench_matrix.registry import Vocabulary
 
-__all__ = ["load_matrix", "suggest"]
+__all__ = ["load_matrix", "selector", "suggest"]
 
 
 def _is_integer(_checker: Any, value: Any) -> bool:
@@ -171,14 +172,16 @@ def _build(path: Path, data: dict[str, Any], lines: dict, report: Located, backe
              **axis_values(vocabulary)}
     selectors = {}
     for section in ("include", "exclude"):
-        selectors[section] = tuple(_selector(section, i, s, known, report) for i, s in enumerate(data.get(section, [])))
+        selectors[section] = tuple(selector((section, i), s, known, report)
+                                   for i, s in enumerate(data.get(section, [])))
     _check_metrics(data.get("metrics", []), report)
-    closed = closed_loop(data.get("closed_loop"), models, dataset, known, report)
+    loading = Loading(models, dataset, known, report)
+    scenarios = {s.name: s.read(data[s.name], loading) for s in selectable() if s.name in data}
     options = {name: dict(given) for name, given in data.get("backend_options", {}).items()}
     return Matrix(path=path, name=data.get("name", path.stem), models=models, dataset=dataset,
                   strategies=strategies, axes=axes, include=selectors["include"],
                   exclude=selectors["exclude"], settings=Settings(**data.get("settings", {})),
-                  backend_options=options, metrics=tuple(data.get("metrics", ())), closed_loop=closed,
+                  backend_options=options, metrics=tuple(data.get("metrics", ())), scenarios=scenarios,
                   lines=lines)
 
 
@@ -312,11 +315,12 @@ def _strategies(declared: dict[str, Any], report: Located) -> dict[str, Strategy
     return out
 
 
-def _selector(section: str, i: int, entry: dict[str, str], known: dict[str, list[str] | None],
-              report: Located) -> Selector:
+def selector(at: tuple, entry: dict[str, str], known: dict[str, list[str] | None],
+             report: Located) -> Selector:
+    """A partial cell at key path `at`; each value must be known (`known`: per key, None for any)."""
     for key, value in entry.items():
         allowed = known.get(key)
         if allowed is not None and value not in allowed:
-            report.add((section, i, key), f"'{value}' is not a known {key}; known: {', '.join(allowed)}"
-                                          f"{suggest(value, allowed)}")
+            report.add(at + (key,), f"'{value}' is not a known {key}; known: {', '.join(allowed)}"
+                                    f"{suggest(value, allowed)}")
     return Selector(values=tuple((k, entry[k]) for k in CELL_KEYS if k in entry))

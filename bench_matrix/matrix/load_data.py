@@ -13,8 +13,9 @@ from bench_matrix.matrix.schema import DATASET_KINDS, MAX_SAMPLE_ELEMENTS
 from bench_matrix.matrix.spec import DatasetSpec, LabelSpec, Preprocess, SplitSpec
 from bench_matrix.matrix.yamlpos import Located
 from bench_matrix.tensors import TensorSpec, concrete
+from bench_matrix.workload.driving.defaults import SPEED_LABELS
 
-DRIVING_LABELS = LabelSpec(columns=("v", "w"), offset=(6.5, -7.1), scale=(17.5, 14.2))
+DRIVING_LABELS = LabelSpec(**SPEED_LABELS)
 CLASS_LABELS = LabelSpec(columns=("class",), offset=None, scale=None)  # one integer class id per sample
 # What the labels of a data source are, and the tasks they allow, the default first (npz, folder: any task;
 # regression by default).

@@ -1,4 +1,5 @@
-"""The matrix format as a JSON Schema: the single source for validation and for editors."""
+"""The matrix format as a JSON Schema: the single source for validation and for editors. The core is here;
+each selectable scenario adds its own section (bench_matrix/scenarios)."""
 
 from __future__ import annotations
 
@@ -9,9 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from bench_matrix.matrix.spec import TASKS
 from bench_matrix.tensors import DTYPES
-from bench_matrix.workload.driving.circuits import BUILTIN_CIRCUITS
-from bench_matrix.workload.driving.points import MAX_COORDINATE
-from bench_matrix.workload.driving.simulator import MODES
+from bench_matrix.workload.driving import defaults as builtin_data
 
 if TYPE_CHECKING:
     from bench_matrix.registry import Vocabulary
@@ -20,7 +19,7 @@ FRAMEWORKS = ("pytorch", "tensorflow", "onnx")
 PRECISIONS = ("fp32", "fp16", "bf16", "int8")
 BUILTIN_MODELS = ("pilotnet", "pilotnet_jderobot")
 BUILTIN_FRAMEWORKS = ("pytorch", "tensorflow")  # each built-in model exists in both
-BUILTIN_DATASETS = ("driving", "driving_bends")
+BUILTIN_DATASETS = tuple(builtin_data.TASKS)
 DATASET_KINDS = ("builtin", "npz", "folder", "images", "synthetic")
 CELL_KEYS = ("model", "framework", "backend", "strategy", "precision", "target")
 QAT_KINDS = ("qat", "cqat", "pqat", "pcqat")  # training kinds whose result carries learned int8 ranges
@@ -48,7 +47,7 @@ def _count(minimum: int, maximum: int, **extra: Any) -> dict[str, Any]:
     return {"type": "integer", "minimum": minimum, "maximum": maximum, **extra}
 
 
-def _seconds(maximum: int = MAX_SECONDS, exclusive: bool = False, **extra: Any) -> dict[str, Any]:
+def seconds(maximum: int = MAX_SECONDS, exclusive: bool = False, **extra: Any) -> dict[str, Any]:
     return {"type": "number", "exclusiveMinimum" if exclusive else "minimum": 0, "maximum": maximum, **extra}
 
 
@@ -142,11 +141,11 @@ def _strategy_schema() -> dict[str, Any]:
     }
 
 
-def _axis(values: dict[str, Any]) -> dict[str, Any]:
+def axis(values: dict[str, Any]) -> dict[str, Any]:
     return {"type": "array", "minItems": 1, "uniqueItems": True, "items": values}
 
 
-_SELECTOR = {
+SELECTOR = {
     "type": "object", "minProperties": 1, "additionalProperties": False,
     "properties": {key: {"type": "string"} for key in CELL_KEYS},
 }
@@ -158,8 +157,7 @@ _SIDE = _count(1, MAX_RESIZE)
 DATASET: dict[str, Any] = {
     "type": "object", "additionalProperties": False,
     "properties": {
-        "builtin": {"enum": list(BUILTIN_DATASETS), "description": "driving: road images labelled [v, w] "
-                    "(regression); driving_bends: the same images labelled by the bend ahead (5 classes)"},
+        "builtin": {"enum": list(BUILTIN_DATASETS), "description": builtin_data.DESCRIPTION},
         "npz": {"type": "string", "description": "one array per model input (x for one input), labels y"},
         "folder": {**_FOLDERS, "description": "DeepLearningStudio recordings: data.csv and images"},
         "images": {**_FOLDERS, "description": "image folders with one subfolder per class"},
@@ -222,47 +220,6 @@ _INPUT = {
     },
 }
 
-_CIRCUIT = {
-    "if": {"type": "string"},
-    "then": {"enum": list(BUILTIN_CIRCUITS)},
-    "else": {
-        "type": "object", "additionalProperties": False, "required": ["name"],
-        "properties": {
-            "name": NAME,
-            "points": {"type": "array", "minItems": 4, "maxItems": 10_000,
-                       "description": "a closed circuit's centreline: [x, y] points in metres, in driving "
-                                      "order",
-                       "items": {"type": "array", "minItems": 2, "maxItems": 2, "items": {
-                           "type": "number", "minimum": -MAX_COORDINATE, "maximum": MAX_COORDINATE}}},
-            "lane_width": {"type": "number", "minimum": 4, "maximum": 12,
-                           "description": "metres (default 7.5)"},
-            "time_limit_s": _seconds(3_600, exclusive=True),
-        },
-    },
-    "description": "a built-in circuit's name, or {name, points, lane_width} (or {name, time_limit_s})",
-}
-
-CLOSED_LOOP: dict[str, Any] = {
-    "type": "object", "additionalProperties": False,
-    "description": "drive laps in the built-in simulator with the cells' own artifacts (docs/closed-loop.md)",
-    "properties": {
-        "circuits": {"type": "array", "minItems": 1, "items": _CIRCUIT},
-        "modes": _axis({"enum": list(MODES)}),
-        "brain_period_ms": {"type": "number", "minimum": 1, "maximum": 10_000,
-                            "description": "target brain cycle (default 50 ms, the study's)"},
-        "latency_budget_ms": {"type": "number", "minimum": 0, "maximum": 10_000,
-                              "description": "real_time: added to every measured brain time (a slower "
-                                             "target)"},
-        "time_limit_s": _seconds(3_600, exclusive=True, description="simulated seconds per circuit"),
-        "off_road_limit_s": _seconds(600, exclusive=True,
-                                     description="a lap stops after this long off the road in one go"),
-        "cells": {"if": {"type": "string"}, "then": {"const": "all"},
-                  "else": {"type": "array", "minItems": 1, "items": _SELECTOR},
-                  "description": "'all' (default) or a list of partial cells, as in include"},
-        "exclude": {"type": "array", "items": _SELECTOR},
-    },
-}
-
 SCHEMA: dict[str, Any] = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "$id": "https://bench-matrix.dev/schema/matrix.schema.json",
@@ -309,11 +266,11 @@ SCHEMA: dict[str, Any] = {
             "type": "object", "additionalProperties": False,
             "required": ["strategy", "precision", "target"],
             "properties": {
-                "framework": _axis({"enum": list(FRAMEWORKS)}),
-                "backend": _axis({"type": "string"}),
-                "strategy": _axis({"type": "string"}),
-                "precision": _axis({"enum": list(PRECISIONS)}),
-                "target": _axis({"type": "string", "description": "a target an installed backend declares "
+                "framework": axis({"enum": list(FRAMEWORKS)}),
+                "backend": axis({"type": "string"}),
+                "strategy": axis({"type": "string"}),
+                "precision": axis({"enum": list(PRECISIONS)}),
+                "target": axis({"type": "string", "description": "a target an installed backend declares "
                                                                   "(bench-matrix backends lists them)"}),
             },
         },
@@ -321,23 +278,22 @@ SCHEMA: dict[str, Any] = {
                             "additionalProperties": {"type": "object"}},
         "metrics": {"type": "array", "uniqueItems": True, "items": {"type": "string"},
                     "description": "metric plugins to compute for every cell, besides the task's own"},
-        "include": {"type": "array", "items": _SELECTOR},
-        "exclude": {"type": "array", "items": _SELECTOR},
-        "closed_loop": CLOSED_LOOP,
+        "include": {"type": "array", "items": SELECTOR},
+        "exclude": {"type": "array", "items": SELECTOR},
         "settings": {"type": "object", "additionalProperties": False, "properties": {
             "warmup_iterations": _count(0, MAX_ITERATIONS),
-            "warmup_s": _seconds(),
+            "warmup_s": seconds(),
             "min_iterations": _count(1, MAX_ITERATIONS),
-            "min_time_s": _seconds(),
-            "max_time_s": _seconds(exclusive=True),
+            "min_time_s": seconds(),
+            "max_time_s": seconds(exclusive=True),
             "ci_rel_width": {"type": "number", "exclusiveMinimum": 0, "maximum": 1,
                              "description": "after the minimum count and time, the latency loop stops once "
                                             "the 95 % confidence interval of the p50 spans at most this "
                                             "fraction of it (else it goes on up to max_time_s)"},
             "batch_size": _count(1, MAX_BATCH),
-            "throughput_time_s": _seconds(exclusive=True),
+            "throughput_time_s": seconds(exclusive=True),
             "threads": _count(1, MAX_THREADS),
-            "timeout_s": _seconds(MAX_TIMEOUT_S, exclusive=True,
+            "timeout_s": seconds(MAX_TIMEOUT_S, exclusive=True,
                                   description="per cell, conversion and measurement together"),
             "seed": _SEED,
             "eval_samples": _count(1, MAX_SAMPLES),
@@ -356,9 +312,9 @@ def axis_values(vocabulary: "Vocabulary") -> dict[str, list[str]]:
 
 
 def installed_schema(vocabulary: "Vocabulary", metrics: Sequence[str] = ()) -> dict[str, Any]:
-    """SCHEMA extended with what the installed plugins declare: their targets and precisions on the axes, each
-    backend's own options under backend_options, and the installed metric plugins."""
-    schema = copy.deepcopy(SCHEMA)
+    """The matrix schema extended with what the installed plugins declare: their targets and precisions on the
+    axes, each backend's own options under backend_options, and the installed metric plugins."""
+    schema = matrix_schema()
     properties = schema["properties"]
     axes = properties["axes"]["properties"]
     for axis, values in axis_values(vocabulary).items():
@@ -376,6 +332,15 @@ def installed_schema(vocabulary: "Vocabulary", metrics: Sequence[str] = ()) -> d
     return schema
 
 
-def schema_json(schema: dict[str, Any] = SCHEMA) -> str:
+def matrix_schema() -> dict[str, Any]:
+    """SCHEMA (the core) with each selectable scenario's section: the built-in matrix format."""
+    from bench_matrix.scenarios import selectable
+
+    schema = copy.deepcopy(SCHEMA)
+    schema["properties"].update({s.name: copy.deepcopy(s.schema) for s in selectable()})
+    return schema
+
+
+def schema_json(schema: dict[str, Any] | None = None) -> str:
     """A schema as JSON text; by default the built-in one, published in docs/matrix.schema.json."""
-    return json.dumps(schema, indent=2) + "\n"
+    return json.dumps(matrix_schema() if schema is None else schema, indent=2) + "\n"

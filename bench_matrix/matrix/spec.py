@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from bench_matrix.tensors import TensorSpec
+from bench_matrix.workload.driving.defaults import DEFAULT_DATASET
 
 TASKS = ("regression", "classification", "none")
 
@@ -98,7 +99,7 @@ class DatasetSpec:
 
     kind: str  # builtin | npz | folder | images | synthetic
     paths: tuple[Path, ...] = ()
-    builtin: str = "driving"  # the built-in workload: driving (regression of v, w) or driving_bends (classes)
+    builtin: str = DEFAULT_DATASET  # the built-in workload (workload/driving/defaults.py)
     task: str = "regression"  # one of TASKS
     samples: int = 4000
     circuits: int = 20
@@ -166,39 +167,6 @@ class Selector:
 
 
 @dataclass(frozen=True)
-class CircuitSpec:
-    """A circuit to drive: a built-in one by name, or a user's closed list of [x, y] points (metres)."""
-
-    name: str
-    points: tuple[tuple[float, float], ...] = ()  # empty: the built-in circuit `name`
-    lane_width: float = 7.5  # of a user circuit, metres
-    time_limit_s: float | None = None  # None: the section's time_limit_s, else the circuit's default
-
-
-@dataclass(frozen=True)
-class ClosedLoopSpec:
-    """The `closed_loop` section: which cells drive which circuits, in which timing modes, and how."""
-
-    circuits: tuple[CircuitSpec, ...] = (CircuitSpec("simple"),)
-    modes: tuple[str, ...] = ("lock_step", "real_time")
-    brain_period_ms: float = 50.0
-    latency_budget_ms: float = 0.0  # real_time: added to every measured brain time
-    time_limit_s: float | None = None  # per circuit, simulated seconds; None: each circuit's default
-    off_road_limit_s: float = 2.0
-    cells: tuple[Selector, ...] | None = None  # None: every cell
-    exclude: tuple[Selector, ...] = ()
-
-    def selects(self, cell: dict[str, str]) -> bool:
-        """True when the cell (as a dict) is among `cells` and not excluded."""
-        chosen = self.cells is None or any(s.matches(cell) for s in self.cells)
-        return chosen and not any(s.matches(cell) for s in self.exclude)
-
-    def drive_dict(self) -> dict[str, Any]:
-        """How the cells drive (selection aside): what a closed-loop result depends on."""
-        return {k: v for k, v in asdict(self).items() if k not in ("cells", "exclude")}
-
-
-@dataclass(frozen=True)
 class Matrix:
     """A loaded, validated matrix file."""
 
@@ -213,7 +181,7 @@ class Matrix:
     settings: Settings
     backend_options: dict[str, dict[str, Any]] = field(default_factory=dict)  # per backend, its own options
     metrics: tuple[str, ...] = ()  # metric plugins to add to every cell's evaluation
-    closed_loop: ClosedLoopSpec | None = None  # closed-loop driving of (some) cells; None: offline only
+    scenarios: dict[str, Any] = field(default_factory=dict)  # a selectable scenario's name -> its section
     lines: dict[tuple, int] = field(default_factory=dict, compare=False, repr=False)
 
     def model(self, name: str) -> ModelSpec:

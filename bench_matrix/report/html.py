@@ -1,12 +1,11 @@
 """The report as one self-contained HTML file: the models overview, each model's sortable results table, plots
-(inline), closed-loop laps, skipped and failed cells grouped by reason, notes and the environment."""
+(inline), each scenario's section, skipped and failed cells grouped by reason, notes and the environment."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from bench_matrix.report import closed_loop
 from bench_matrix.report.columns import (
     DIFFERENT_ENVIRONMENTS,
     HEADLINE_NOTE,
@@ -27,6 +26,7 @@ from bench_matrix.report.columns import (
 from bench_matrix.report.html_parts import SCRIPT, STYLE, Html, esc, figure, table
 from bench_matrix.report.plots import Plot
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
+from bench_matrix.scenarios import selectable
 
 TITLE = "bench-matrix report"
 
@@ -77,7 +77,7 @@ def _model_section(index: int, model: ModelSummary, plots: Sequence[Plot]) -> st
              *_notes(model), "<h3>Results</h3>", _results(model)]
     if plots:
         parts += ["<h3>Plots</h3>", *(figure(plot) for plot in plots)]
-    parts += [*_closed_loop(model), *_skipped(model), *_failed(model),
+    parts += [*(part for s in selectable() for part in s.html(model)), *_skipped(model), *_failed(model),
               f"<details><summary>Environment of {esc(model.name)}</summary>{_environment(model.environment)}"
               "</details>", "</section>"]
     return "\n".join(parts)
@@ -105,20 +105,6 @@ def _results(model: ModelSummary) -> str:
     return (f"<p>{esc(caption(model))} Click a column header to sort by it; click again to reverse.</p>"
             + table(headers, [c.numeric for c in columns], rows, classes)
             + f'<details><summary>Columns</summary><dl class="columns">{notes}</dl></details>')
-
-
-def _closed_loop(model: ModelSummary) -> list[str]:
-    """The simulation table (every column) and the cells that were selected but could not drive."""
-    found, skipped = closed_loop.laps(model), closed_loop.not_driven(model)
-    if not found and not skipped:
-        return []
-    parts = ["<h3>Closed loop</h3>", f"<p>{esc(closed_loop.INTRO)}</p>"]
-    if found:
-        columns = closed_loop.COLUMNS
-        parts.append(table([(c.header, c.note) for c in columns], [c.numeric for c in columns],
-                           [[c.render(lap) for c in columns] for lap in found]))
-    parts += [f"<p>not driven: {esc(record.cell.label)}: {esc(reason)}</p>" for record, reason in skipped]
-    return parts
 
 
 def _skipped(model: ModelSummary) -> list[str]:

@@ -28,9 +28,9 @@ from bench_matrix.report.columns import (
     shown,
     skip_reason,
 )
-from bench_matrix.report import closed_loop
 from bench_matrix.report.plots import Plot
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
+from bench_matrix.scenarios import selectable
 from bench_matrix.store import CellRecord
 
 _COLUMN_NOTES = ("Latency is measured one sample at a time after warm-up runs; p50/p90/p99 are percentiles "
@@ -81,8 +81,8 @@ def _index_row(model: ModelSummary) -> list[str]:
 
 
 def model_page(model: ModelSummary, plots: Sequence[Plot], out_dir: Path) -> str:
-    """The model's results table with column notes, its plots (paths relative to `out_dir`), closed-loop
-    laps, skipped cells grouped by reason, failed cells, and the environment."""
+    """The model's results table with column notes, its plots (paths relative to `out_dir`), each
+    scenario's section, skipped cells grouped by reason, failed cells, and the environment."""
     lines = [f"# {_escape(model.name)}", "", "[← all models](index.md)", "",
              _escape_text(model_line(model, _code)), "", _escape(accuracy_line(model)), ""]
     note = baseline_note(model)
@@ -102,7 +102,7 @@ def model_page(model: ModelSummary, plots: Sequence[Plot], out_dir: Path) -> str
     else:
         lines += ["No cell of this model produced a result.", ""]
     lines += _plots(plots, out_dir)
-    lines += closed_loop.markdown_lines(model, _table, _escape)
+    lines += [line for s in selectable() for line in s.markdown(model, _table, _escape)]
     lines += _skipped(model)
     if model.failed:
         lines += [f"## Failed ({len(model.failed)})", ""]

@@ -1,5 +1,4 @@
-"""Report plots (matplotlib, Agg): per model a Pareto chart, latency distributions and closed-loop
-trajectories.
+"""Report plots (matplotlib, Agg): per model a Pareto chart, latency distributions and each scenario's plots.
 
 Figures are drawn on an Agg canvas without pyplot (no display, no global state) and saved without a Software
 tag, so the same records give the same bytes; matplotlib is imported only when a plot is drawn."""
@@ -16,11 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.report.closed_loop import driven_records
 from bench_matrix.report.columns import APPROXIMATE, cell_names, sig
 from bench_matrix.report.pareto import Box, Point, accuracy_metric, place_labels, points, reference_sizes
 from bench_matrix.report.summary import ModelSummary, disturbed_phases, unsteady_phases
-from bench_matrix.report.trajectories import write_cell_plot
+from bench_matrix.scenarios import selectable
 from bench_matrix.store import CellRecord
 
 DPI = 110
@@ -43,7 +41,7 @@ ROW_IN, LATENCY_TOP, LATENCY_BOTTOM = 0.3, 0.55, 0.75
 
 @dataclass(frozen=True)
 class Plot:
-    """A PNG written for a model's page: what it shows (`kind`: pareto, latency or trajectory), caption,
+    """A PNG written for a model's page: what it shows (`kind`: pareto, latency, or a scenario's), caption,
     alt text."""
 
     kind: str
@@ -62,14 +60,14 @@ class Style:
 
 def model_plots(model: ModelSummary, samples: Mapping[int, np.ndarray], folder: Path) -> list[Plot]:
     """Draw the model's plots that have data into `folder` (created when needed): the Pareto chart, the
-    latency distributions (cells with raw `samples`, by record id) and each driven cell's trajectories."""
+    latency distributions (cells with raw `samples`, by record id) and each scenario's plots."""
     if not model.rows:
         return []
     folder.mkdir(parents=True, exist_ok=True)
     stem = file_stem(model.name)
     found = [pareto_plot(model, folder / f"pareto-{stem}.png"),
              latency_plot(model, samples, folder / f"latency-{stem}.png")]
-    found += [trajectory_plot(record, folder) for record in driven_records(model)]
+    found += [plot for scenario in selectable() for plot in scenario.plots(model, folder)]
     return [plot for plot in found if plot is not None]
 
 
@@ -84,12 +82,6 @@ def file_stem(name: str) -> str:
         return name
     slug = re.sub(r"[^A-Za-z0-9_.+-]+", "_", name)[:60].strip("._-") or "model"
     return f"{slug}-{hashlib.sha256(name.encode()).hexdigest()[:8]}"
-
-
-def trajectory_plot(record: CellRecord, folder: Path) -> Plot:
-    label = record.cell.label
-    return Plot("trajectory", f"Closed-loop trajectories: {label}", write_cell_plot(record, folder),
-                f"Driven paths of {label} over the reference line")
 
 
 def pareto_plot(model: ModelSummary, path: Path) -> Plot | None:

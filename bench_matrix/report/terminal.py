@@ -27,8 +27,8 @@ from bench_matrix.report.columns import (
     shown,
     skip_reason,
 )
-from bench_matrix.report import closed_loop
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
+from bench_matrix.scenarios import selectable
 from bench_matrix.store import CellRecord
 
 # Ways to lay out the results columns, tried in order until every table fits the console.
@@ -72,7 +72,8 @@ def _print_model(model: ModelSummary, console: Console) -> None:
         console.print(Text(f"Unsteady (~): {line}", style="yellow"))
     if model.rows:
         console.print(*results_tables(model, console))
-    closed_loop.print_terminal(model, console)
+    for scenario in selectable():
+        scenario.terminal(model, console)
     if model.skipped:
         console.print(_skipped_table(model))
     if model.failed:

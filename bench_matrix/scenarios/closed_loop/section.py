@@ -5,9 +5,11 @@ from __future__ import annotations
 
 from typing import Any
 
-from bench_matrix.matrix.schema import CELL_KEYS
-from bench_matrix.matrix.spec import CircuitSpec, ClosedLoopSpec, DatasetSpec, ModelSpec, Selector
+from bench_matrix.matrix.load import selector
+from bench_matrix.matrix.spec import DatasetSpec, ModelSpec
 from bench_matrix.matrix.yamlpos import Located, suggest
+from bench_matrix.scenarios.base import Loading
+from bench_matrix.scenarios.closed_loop.spec import CircuitSpec, ClosedLoopSpec
 from bench_matrix.workload.driving.circuits import BUILTIN_CIRCUITS, user_circuit
 
 AT = ("closed_loop",)
@@ -25,22 +27,21 @@ def drive_problem(model: ModelSpec, dataset: DatasetSpec, task: str) -> str | No
             f"dataset builtin: driving with task regression; it is evaluated on {what} with task {task}")
 
 
-def closed_loop(data: dict[str, Any] | None, models: tuple[ModelSpec, ...], shared: DatasetSpec,
-                known: dict[str, list[str] | None], report: Located) -> ClosedLoopSpec | None:
-    """The typed section (None when the matrix has none); every problem is added to `report`."""
-    if data is None:
-        return None
+def closed_loop(data: dict[str, Any], loading: Loading) -> ClosedLoopSpec:
+    """The typed section; every problem is added to `loading.report`."""
+    report = loading.report
     circuits = tuple(_circuit(i, entry, report) for i, entry in enumerate(data.get("circuits", ["simple"])))
     names = [c.name for c in circuits]
     for i, name in enumerate(names):
         if names.index(name) != i:
             report.add(AT + ("circuits", i), f"circuit '{name}' is listed twice; names must be unique")
     cells = data.get("cells", "all")
-    selected = None if cells == "all" else tuple(_selector("cells", i, s, known, report)
+    selected = None if cells == "all" else tuple(selector(AT + ("cells", i), s, loading.known, report)
                                                  for i, s in enumerate(cells))
-    for i, selector in enumerate(selected or ()):
-        _refuse_non_drivers(i, dict(selector.values), models, shared, report)
-    exclude = tuple(_selector("exclude", i, s, known, report) for i, s in enumerate(data.get("exclude", [])))
+    for i, chosen in enumerate(selected or ()):
+        _refuse_non_drivers(i, dict(chosen.values), loading.models, loading.dataset, report)
+    exclude = tuple(selector(AT + ("exclude", i), s, loading.known, report)
+                    for i, s in enumerate(data.get("exclude", [])))
     return ClosedLoopSpec(circuits=circuits, modes=tuple(data.get("modes", ClosedLoopSpec.modes)),
                           brain_period_ms=data.get("brain_period_ms", ClosedLoopSpec.brain_period_ms),
                           latency_budget_ms=data.get("latency_budget_ms", ClosedLoopSpec.latency_budget_ms),
@@ -73,16 +74,6 @@ def _circuit(i: int, entry: str | dict[str, Any], report: Located) -> CircuitSpe
     except ValueError as problem:
         report.add(at + ("points",), f"circuit {name}: {problem}")
     return spec
-
-
-def _selector(section: str, i: int, entry: dict[str, str], known: dict[str, list[str] | None],
-              report: Located) -> Selector:
-    for key, value in entry.items():
-        allowed = known.get(key)
-        if allowed is not None and value not in allowed:
-            report.add(AT + (section, i, key), f"'{value}' is not a known {key}; known: {', '.join(allowed)}"
-                                               f"{suggest(value, allowed)}")
-    return Selector(values=tuple((k, entry[k]) for k in CELL_KEYS if k in entry))
 
 
 def _refuse_non_drivers(i: int, fixed: dict[str, str], models: tuple[ModelSpec, ...], shared: DatasetSpec,

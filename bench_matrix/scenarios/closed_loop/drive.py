@@ -10,10 +10,12 @@ import numpy as np
 
 from bench_matrix.backend import Session
 from bench_matrix.data import denormalise
-from bench_matrix.executors.child import phase
+from bench_matrix.phases import phase
 from bench_matrix.images import geometric, to_model_input
-from bench_matrix.jobs import MeasureJob
-from bench_matrix.matrix.spec import CircuitSpec, ClosedLoopSpec, LabelSpec, Preprocess
+from bench_matrix.matrix.spec import LabelSpec, Preprocess
+from bench_matrix.scenarios.base import Loaded, Outcome
+from bench_matrix.scenarios.closed_loop import ClosedLoopPlan
+from bench_matrix.scenarios.closed_loop.spec import CircuitSpec, ClosedLoopSpec
 from bench_matrix.tensors import SINGLE, TensorSpec, bind
 from bench_matrix.workload.driving.circuit import Track
 from bench_matrix.workload.driving.circuits import builtin_circuit, default_time_limit, user_circuit
@@ -43,14 +45,13 @@ class SessionBrain:
         return float(v), float(w)
 
 
-def drive_all(session: Session, job: MeasureJob) -> dict[str, Any]:
-    """The record's closed-loop metrics: `closed_loop` {circuit: {mode: lap}} and `closed_loop_circuits`
+def drive_all(loaded: Loaded, plan: ClosedLoopPlan) -> Outcome:
+    """The record's closed-loop fields: `closed_loop` {circuit: {mode: lap}} and `closed_loop_circuits`
     {circuit: reference line and size}; or `closed_loop_skipped` with the reason the model cannot drive."""
-    plan = job.closed_loop
-    assert plan is not None
     if plan.skip:
-        return {"closed_loop_skipped": plan.skip}
-    brain = SessionBrain(session, job.data.preprocess, job.layout, plan.labels, job.source.inputs)
+        return Outcome({"closed_loop_skipped": plan.skip})
+    job = loaded.job
+    brain = SessionBrain(loaded.session, job.data.preprocess, job.layout, plan.labels, job.source.inputs)
     laps: dict[str, dict[str, Any]] = {}
     circuits: dict[str, Any] = {}
     for spec in plan.spec.circuits:
@@ -60,7 +61,7 @@ def drive_all(session: Session, job: MeasureJob) -> dict[str, Any]:
         for mode in plan.spec.modes:
             phase(f"closed loop · {spec.name} · {mode}")
             laps[spec.name][mode] = drive(circuit, brain, sim_settings(plan.spec, spec, circuit, mode))
-    return {"closed_loop": laps, "closed_loop_circuits": circuits}
+    return Outcome({"closed_loop": laps, "closed_loop_circuits": circuits})
 
 
 def drive(circuit: Track, brain: SessionBrain, settings: SimSettings) -> dict[str, Any]:

@@ -8,13 +8,21 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.report.closed_loop import MODE_NAMES, plot_name
+from bench_matrix.report.plots import Plot
+from bench_matrix.report.summary import ModelSummary
+from bench_matrix.scenarios.closed_loop.report import MODE_NAMES, driven_records, plot_name
 from bench_matrix.store import CellRecord
 
 PANEL_INCHES = 4.0
 DPI = 80
 COLOURS = {"lock_step": "#1f77b4", "real_time": "#d62728"}
 ROAD, REFERENCE = "#c8c8c8", "#555555"
+
+
+def trajectory_plots(model: ModelSummary, folder: Path) -> list[Plot]:
+    """One plot per driven cell of the model, in the results table's order."""
+    return [Plot("trajectory", f"Closed-loop trajectories: {r.cell.label}", write_cell_plot(r, folder),
+                 f"Driven paths of {r.cell.label} over the reference line") for r in driven_records(model)]
 
 
 def write_cell_plot(record: CellRecord, folder: Path) -> Path:

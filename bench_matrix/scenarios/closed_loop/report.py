@@ -1,5 +1,5 @@
-"""The closed-loop part of a report, from stored records only: the study's simulation table (one row per cell,
-circuit and timing mode) beside offline columns, the cells that were not driven, and trajectory plot names."""
+"""The closed-loop section of a report, from stored records only: the study's simulation table (one row per
+cell, circuit and timing mode) beside offline columns, the cells that were not driven, trajectory plot names."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from bench_matrix.report.columns import DASH, fixed, mib, sig
+from bench_matrix.report.html_parts import esc, table
 from bench_matrix.report.summary import ModelSummary, number
 from bench_matrix.store import CellRecord
 
@@ -156,6 +157,19 @@ def markdown_lines(model: ModelSummary, table: Callable[[list[str], list[bool], 
     lines += [f"- not driven: {escape(record.cell.label)}: {escape(reason)}" for record, reason in skipped]
     lines += [""] if skipped else []
     return lines
+
+
+def html_parts(model: ModelSummary) -> list[str]:
+    """The HTML page's section: the simulation table (every column) and the cells that could not drive."""
+    found, skipped = laps(model), not_driven(model)
+    if not found and not skipped:
+        return []
+    parts = ["<h3>Closed loop</h3>", f"<p>{esc(INTRO)}</p>"]
+    if found:
+        parts.append(table([(c.header, c.note) for c in COLUMNS], [c.numeric for c in COLUMNS],
+                           [[c.render(lap) for c in COLUMNS] for lap in found]))
+    parts += [f"<p>not driven: {esc(record.cell.label)}: {esc(reason)}</p>" for record, reason in skipped]
+    return parts
 
 
 def print_terminal(model: ModelSummary, console: Any) -> None:

@@ -1,0 +1,100 @@
+"""The scenario seam: what is measured once a cell's artifact is loaded. The latency scenario runs in every
+measure job; others are selected per cell by their own top-level matrix section."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar
+
+if TYPE_CHECKING:
+    from bench_matrix.backend import Backend, Session
+    from bench_matrix.jobs import MeasureJob
+    from bench_matrix.matrix.spec import DatasetSpec, Matrix, ModelSpec
+    from bench_matrix.matrix.yamlpos import Located
+    from bench_matrix.measure.gpu import GpuMemory
+    from bench_matrix.report.plots import Plot
+    from bench_matrix.report.summary import ModelSummary
+
+
+@dataclass(frozen=True)
+class Loaded:
+    """A cell's loaded session in its measure job's process, with what loading it learned."""
+
+    job: MeasureJob
+    backend: Backend
+    session: Session
+    load_s: float
+    on_gpu: bool
+    gpu_memory: GpuMemory | None
+    cpus: Any
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What a scenario adds to the cell's record: metrics fields and raw series (stats.pack_samples bytes)."""
+
+    fields: dict[str, Any]
+    samples: dict[str, bytes] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Planned:
+    """A scenario decided for one cell, in the parent; the measure job carries it to the artifact's process,
+    which runs `function` ('module:function', taking Loaded and this, giving an Outcome)."""
+
+    name: ClassVar[str]  # the scenario's; its record fields are `name` or start with `name_`
+    function: ClassVar[str]
+    repeat: ClassVar[bool] = False  # run again by later passes; else the record keeps the first pass's fields
+
+    def fingerprint(self) -> dict[str, Any]:
+        """What the scenario's fields depend on beyond the cell's own fingerprint."""
+        raise NotImplementedError
+
+    def describe(self) -> str:
+        """What `bench-matrix plan` shows for the cell under the scenario's column (rich markup)."""
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class Loading:
+    """What a scenario's section may check itself against while the matrix loads."""
+
+    models: tuple[ModelSpec, ...]
+    dataset: DatasetSpec
+    known: dict[str, list[str] | None]  # cell key -> its known values (None: any)
+    report: Located
+
+
+class Scenario:
+    """A scenario selectable from the matrix: its section's schema, typed reading and per-cell plan, and its
+    report section (from stored records only)."""
+
+    name: ClassVar[str]  # the matrix section's key, the Planned's name and its record fields' prefix
+    title: ClassVar[str]  # the plan view's column
+    schema: ClassVar[dict[str, Any]]  # JSON Schema of the section
+
+    def read(self, data: dict[str, Any], loading: Loading) -> Any:
+        """The typed section from its schema-valid data; problems go to `loading.report`."""
+        raise NotImplementedError
+
+    def plan(self, section: Any, matrix: Matrix, cell: Any) -> Planned | None:
+        """The scenario for this cell, or None when the section does not select it."""
+        raise NotImplementedError
+
+    def markdown(self, model: ModelSummary, table: Any, escape: Any) -> list[str]:
+        return []
+
+    def html(self, model: ModelSummary) -> list[str]:
+        return []
+
+    def terminal(self, model: ModelSummary, console: Any) -> None:
+        return None
+
+    def plots(self, model: ModelSummary, folder: Path) -> list[Plot]:
+        return []
+
+
+def fields(name: str, metrics: dict[str, Any]) -> dict[str, Any]:
+    """The record fields of scenario `name`."""
+    return {k: v for k, v in metrics.items() if k == name or k.startswith(f"{name}_")}

@@ -1,0 +1,87 @@
+"""The closed_loop section's types and its fragment of the matrix schema (validated before it is read)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from bench_matrix.matrix.schema import NAME, SELECTOR, axis, seconds
+from bench_matrix.matrix.spec import Selector
+from bench_matrix.workload.driving.circuits import BUILTIN_CIRCUITS
+from bench_matrix.workload.driving.points import MAX_COORDINATE
+from bench_matrix.workload.driving.simulator import MODES
+
+
+@dataclass(frozen=True)
+class CircuitSpec:
+    """A circuit to drive: a built-in one by name, or a user's closed list of [x, y] points (metres)."""
+
+    name: str
+    points: tuple[tuple[float, float], ...] = ()  # empty: the built-in circuit `name`
+    lane_width: float = 7.5  # of a user circuit, metres
+    time_limit_s: float | None = None  # None: the section's time_limit_s, else the circuit's default
+
+
+@dataclass(frozen=True)
+class ClosedLoopSpec:
+    """The `closed_loop` section: which cells drive which circuits, in which timing modes, and how."""
+
+    circuits: tuple[CircuitSpec, ...] = (CircuitSpec("simple"),)
+    modes: tuple[str, ...] = ("lock_step", "real_time")
+    brain_period_ms: float = 50.0
+    latency_budget_ms: float = 0.0  # real_time: added to every measured brain time
+    time_limit_s: float | None = None  # per circuit, simulated seconds; None: each circuit's default
+    off_road_limit_s: float = 2.0
+    cells: tuple[Selector, ...] | None = None  # None: every cell
+    exclude: tuple[Selector, ...] = ()
+
+    def selects(self, cell: dict[str, str]) -> bool:
+        """True when the cell (as a dict) is among `cells` and not excluded."""
+        chosen = self.cells is None or any(s.matches(cell) for s in self.cells)
+        return chosen and not any(s.matches(cell) for s in self.exclude)
+
+    def drive_dict(self) -> dict[str, Any]:
+        """How the cells drive (selection aside): what a closed-loop result depends on."""
+        return {k: v for k, v in asdict(self).items() if k not in ("cells", "exclude")}
+
+
+CIRCUIT = {
+    "if": {"type": "string"},
+    "then": {"enum": list(BUILTIN_CIRCUITS)},
+    "else": {
+        "type": "object", "additionalProperties": False, "required": ["name"],
+        "properties": {
+            "name": NAME,
+            "points": {"type": "array", "minItems": 4, "maxItems": 10_000,
+                       "description": "a closed circuit's centreline: [x, y] points in metres, in driving "
+                                      "order",
+                       "items": {"type": "array", "minItems": 2, "maxItems": 2, "items": {
+                           "type": "number", "minimum": -MAX_COORDINATE, "maximum": MAX_COORDINATE}}},
+            "lane_width": {"type": "number", "minimum": 4, "maximum": 12,
+                           "description": "metres (default 7.5)"},
+            "time_limit_s": seconds(3_600, exclusive=True),
+        },
+    },
+    "description": "a built-in circuit's name, or {name, points, lane_width} (or {name, time_limit_s})",
+}
+
+SCHEMA: dict[str, Any] = {
+    "type": "object", "additionalProperties": False,
+    "description": "drive laps in the built-in simulator with the cells' own artifacts (docs/closed-loop.md)",
+    "properties": {
+        "circuits": {"type": "array", "minItems": 1, "items": CIRCUIT},
+        "modes": axis({"enum": list(MODES)}),
+        "brain_period_ms": {"type": "number", "minimum": 1, "maximum": 10_000,
+                            "description": "target brain cycle (default 50 ms, the study's)"},
+        "latency_budget_ms": {"type": "number", "minimum": 0, "maximum": 10_000,
+                              "description": "real_time: added to every measured brain time (a slower "
+                                             "target)"},
+        "time_limit_s": seconds(3_600, exclusive=True, description="simulated seconds per circuit"),
+        "off_road_limit_s": seconds(600, exclusive=True,
+                                     description="a lap stops after this long off the road in one go"),
+        "cells": {"if": {"type": "string"}, "then": {"const": "all"},
+                  "else": {"type": "array", "minItems": 1, "items": SELECTOR},
+                  "description": "'all' (default) or a list of partial cells, as in include"},
+        "exclude": {"type": "array", "items": SELECTOR},
+    },
+}

@@ -1,0 +1,33 @@
+"""The scenario seam: generic modules never name a scenario or the driving workload; they reach scenarios
+through bench_matrix.scenarios only."""
+
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1] / "bench_matrix"
+MATRIX_CORE = ["matrix/schema.py", "matrix/spec.py", "matrix/load.py"]  # hold the built-in dataset's keys
+GENERIC = ["runner.py", "plan.py", "cell.py", "jobs/__init__.py", "jobs/measure.py", "plan_view.py",
+           "scenarios/base.py", "scenarios/latency.py",
+           *(str(p.relative_to(ROOT)) for p in sorted(ROOT.glob("executors/*.py"))),
+           *(str(p.relative_to(ROOT)) for p in sorted(ROOT.glob("store*.py"))),
+           *(f"report/{name}.py" for name in ("__init__", "html", "markdown", "terminal", "plots"))]
+SCENARIO = ("closed_loop", "closed loop", "closedloop", " laps", "simulator")
+WORKLOAD = ("driving", "circuit")
+
+
+@pytest.mark.parametrize("module", GENERIC + MATRIX_CORE)
+def test_generic_module_names_no_scenario(module: str) -> None:
+    text = (ROOT / module).read_text().lower()
+    names = SCENARIO + (() if module in MATRIX_CORE else WORKLOAD)
+    found = [name for name in names if name in text]
+    assert not found, f"{module} names {found}: scenario-specific code belongs in bench_matrix/scenarios"
+
+
+def test_scenarios_keep_their_matrix_sections_and_fields() -> None:
+    from bench_matrix.matrix.schema import SCHEMA, matrix_schema
+    from bench_matrix.scenarios import selectable
+
+    for scenario in selectable():
+        assert scenario.name not in SCHEMA["properties"]
+        assert matrix_schema()["properties"][scenario.name] == scenario.schema
