@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from conftest import FAST_SETTINGS, cli, install_slow_plugin, matrix_text, onnx_matrix_text
+from laps import slowest_rate
 
 PILOTNET = """\
 models: [{{name: pilotnet, framework: pytorch, builtin: pilotnet{training}}}]
@@ -126,12 +127,6 @@ def test_trained_pilotnet_completes_the_default_circuit_deterministically(traine
     run(trained, (trained / "m.yaml").read_text(), "--force")  # the same cell and artifact, measured again
     second = records(trained)["onnxruntime"]["metrics"]["closed_loop"]["simple"]["lock_step"]
     assert driving(second) == driving(first)
-
-
-def slowest_rate(lap: dict) -> float:
-    """The lowest brain rate real time allows for a lap's measured brain times: a step lasts its period plus
-    at most its brain time and latency budget (docs/closed-loop.md), however long the machine made them."""
-    return 1e3 / (lap["brain_period_ms"] + lap["latency_budget_ms"] + lap["brain_ms"]["mean"])
 
 
 @pytest.mark.slow
