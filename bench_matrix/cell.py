@@ -4,10 +4,9 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, ClassVar, Literal
 
 from bench_matrix.matrix.spec import StrategySpec
-from bench_matrix.scenarios.base import Planned
 
 PlanState = Literal["run", "skip", "invalid"]
 
@@ -38,6 +37,24 @@ class Cell:
 
 
 NO_STEP = StrategySpec(name="none", kind="none")
+
+
+@dataclass(frozen=True)
+class Planned:
+    """A scenario decided for one cell, in the parent; the measure job carries it to the artifact's process,
+    which runs `function` ('module:function', taking Loaded and this, giving an Outcome)."""
+
+    name: ClassVar[str]  # the scenario's; its record fields are `name` or start with `name_`
+    function: ClassVar[str]
+    repeat: ClassVar[bool] = False  # run again by later passes; else the record keeps the first pass's fields
+
+    def fingerprint(self) -> dict[str, Any]:
+        """What the scenario's fields depend on beyond the cell's own fingerprint."""
+        raise NotImplementedError
+
+    def describe(self) -> str:
+        """What `bench-matrix plan` shows for the cell under the scenario's column (rich markup)."""
+        raise NotImplementedError
 
 
 @dataclass(frozen=True)

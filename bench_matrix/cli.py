@@ -169,6 +169,7 @@ def _load(args: argparse.Namespace):
 
 def _run(args: argparse.Namespace, console) -> int:
     from bench_matrix.executors import open_executor
+    from bench_matrix.executors.local import probe
     from bench_matrix.plan import resolve
     from bench_matrix.runner import Runner
     from bench_matrix.selection import Shard
@@ -187,7 +188,7 @@ def _run(args: argparse.Namespace, console) -> int:
         connecting = console.status("connecting to the Ray cluster (or starting one here) …")
         with connecting if args.executor == "ray" else contextlib.nullcontext():
             executor = open_executor(args.executor, ws, args.address)
-        plan = resolve(matrix, ws)
+        plan = resolve(matrix, ws, probe)
         counts = Runner(plan, ws, store, executor, console, args.label, shard).run(filters, args.force)
     finally:
         store.close()
@@ -202,12 +203,13 @@ def _run(args: argparse.Namespace, console) -> int:
 
 
 def _plan(args: argparse.Namespace, console) -> int:
+    from bench_matrix.executors.local import probe
     from bench_matrix.plan import resolve
     from bench_matrix.plan_view import show_plan
 
     matrix, ws = _load(args)
     filters = _selected(args)
-    show_plan(console, resolve(matrix, ws), ws, filters, args.results, args.show_all)
+    show_plan(console, resolve(matrix, ws, probe), ws, filters, args.results, args.show_all)
     return 0
 
 
@@ -228,7 +230,7 @@ def _backends(args: argparse.Namespace, console) -> int:
 
 
 def _schema(args: argparse.Namespace, console) -> int:
-    from bench_matrix.matrix.schema import installed_schema, schema_json
+    from bench_matrix.matrix.extended import installed_schema, schema_json
 
     if args.builtin:
         sys.stdout.write(schema_json())

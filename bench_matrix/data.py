@@ -287,9 +287,9 @@ def _builtin(spec: DatasetSpec) -> Raw:
     task = defaults.TASKS.get(spec.builtin)
     if task is None:
         raise UserError(f"dataset.builtin: '{spec.builtin}' is not a built-in dataset; choose one of "
-                        f"{', '.join(BUILTIN_TASKS)}")
+                        f"{', '.join(defaults.TASKS)}")
     if spec.task not in (task, "none"):
-        other = next(name for name, t in BUILTIN_TASKS.items() if t == spec.task)
+        other = next(name for name, t in defaults.TASKS.items() if t == spec.task)
         raise UserError(f"dataset: the builtin dataset {spec.builtin} is labelled for {task}, not "
                         f"{spec.task}; use builtin: {other} (or task: {task} or none)")
     data = generate(spec.samples, seed=spec.seed, n_circuits=spec.circuits)

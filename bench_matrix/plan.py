@@ -5,14 +5,14 @@ scenarios; every model's task, inputs and baseline; mistakes found before anythi
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from bench_matrix import __version__, data
-from bench_matrix.cell import Cell, CellPlan
-from bench_matrix.errors import MatrixError, UserError
-from bench_matrix.executors.local import probe_here
+from bench_matrix.cell import Cell, CellPlan, Planned
+from bench_matrix.errors import MatrixError
 from bench_matrix.jobs import ProbeJob
 from bench_matrix.jobs.results import Probe
 from bench_matrix.matrix.expand import combinations, judge, training_key, verdict_key
@@ -21,11 +21,13 @@ from bench_matrix.matrix.yamlpos import format_path
 from bench_matrix.measure import env as environment
 from bench_matrix.registry import available
 from bench_matrix.scenarios import selectable
-from bench_matrix.scenarios.base import Planned
 from bench_matrix.sources.code import model_code
 from bench_matrix.sources.forward_call import call_problem
 from bench_matrix.tensors import TensorSpec, binding_problem
 from bench_matrix.workspace import Workspace, digest, file_sha256, tree_sha256
+
+
+Prober = Callable[[ProbeJob], Probe]  # runs the probe job on this machine (executors.local.probe)
 
 
 @dataclass(frozen=True)
@@ -56,12 +58,12 @@ class Plan:
         return [p for p in self.cells if p.state == state]
 
 
-def resolve(matrix: Matrix, workspace: Workspace) -> Plan:
-    """Expand the matrix and judge every combination in a child process on this machine (imports stay out of
-    the parent)."""
+def resolve(matrix: Matrix, workspace: Workspace, prober: Prober) -> Plan:
+    """Expand the matrix and judge every combination with the probe job, which `prober` runs in a child process
+    on this machine (imports stay out of the parent)."""
     installed = list(available())
     cells, excluded = combinations(matrix, installed)
-    probe = _probe(matrix, cells, installed, workspace)
+    probe = _probe(matrix, cells, installed, workspace, prober)
     baselines = probe.baselines()
     expansion = judge(matrix, cells, excluded, probe.verdicts, probe.trainers, baselines)
     models = {m.name: _model_plan(matrix, m, probe.inputs, baselines, workspace) for m in matrix.models}
@@ -73,7 +75,8 @@ def resolve(matrix: Matrix, workspace: Workspace) -> Plan:
     return Plan(matrix, decided, models, excluded, probe.backends)
 
 
-def _probe(matrix: Matrix, cells: list[Cell], installed: list[str], workspace: Workspace) -> Probe:
+def _probe(matrix: Matrix, cells: list[Cell], installed: list[str], workspace: Workspace,
+           prober: Prober) -> Probe:
     """The probe of the cells' combinations and fine-tunings, the model files' inputs and the parameters of
     several-input factories' forward."""
     keys = tuple(sorted({verdict_key(matrix, c) for c in cells}))
@@ -83,10 +86,7 @@ def _probe(matrix: Matrix, cells: list[Cell], installed: list[str], workspace: W
     names = tuple(sorted(set(installed) | {k[0] for k in keys}))
     factories = tuple(sorted({(m.factory, tuple(map(str, m.python_path))) for m in matrix.models
                               if m.factory and _several_inputs(matrix, m)}))
-    ended = probe_here(ProbeJob(workspace, names, keys, training, files, factories))
-    if not ended.ok:
-        raise UserError(f"probing the installed backends failed: {ended.error}")
-    return ended.result
+    return prober(ProbeJob(workspace, names, keys, training, files, factories))
 
 
 def scenarios_of(matrix: Matrix, cell: Cell) -> tuple[Planned, ...]:

@@ -8,6 +8,7 @@ from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, 
                            TimeRemainingColumn)
 
 from bench_matrix.cell import Cell
+from bench_matrix.measurement import Interference, Measurement, TaskMetrics
 from bench_matrix.store import CellRecord
 
 
@@ -62,28 +63,26 @@ class RunProgress:
         self._progress.refresh()
 
 
-def _accuracy(metrics: dict) -> str:
+def _accuracy(task: TaskMetrics) -> str:
     """The task's headline accuracy figure: MSE, top-1, or the cosine similarity to the baseline."""
-    if "mse" in metrics:
-        return f"MSE {metrics['mse']:.4g}"
-    if "top1" in metrics:
-        return f"top-1 {metrics['top1']:.1%}"
-    cosine = metrics.get("cosine_similarity")
-    return "" if cosine is None else f"cosine {cosine:.6f}"
+    if task.mse is not None:
+        return f"MSE {task.mse:.4g}"
+    if task.top1 is not None:
+        return f"top-1 {task.top1:.1%}"
+    return "" if task.cosine is None else f"cosine {task.cosine:.6f}"
 
 
-def _disturbed(metrics: dict) -> str:
+def _disturbed(interference: Interference | None) -> str:
     """A mark for a cell whose timing stayed disturbed by other work after its re-measurements."""
-    interference = metrics.get("interference") or {}  # none in records stored before it was measured
-    if not interference.get("flagged"):
+    if not (interference and interference.flagged):  # none in records stored before it was measured
         return ""
-    reason = interference.get("reason")
+    reason = interference.reason
     return f"  [yellow]~ disturbed{f': {escape(reason)}' if reason else ''}[/]"
 
 
-def _calibration(metrics: dict) -> str:
+def _calibration(metrics: Measurement) -> str:
     """A warning for a cell calibrated on fewer samples than its strategy asked for."""
-    calibration = metrics.get("calibration") or {}
+    calibration = metrics.others.get("calibration") or {}
     if calibration.get("used", 0) >= calibration.get("asked", 0):
         return ""
     return (f"  [yellow]! calibrated on {calibration['used']} of the {calibration['asked']} samples asked for: "
@@ -96,12 +95,11 @@ def describe(record: CellRecord) -> str:
     name = f"{cell.model} · {cell.label}"
     if record.status == "ok":
         m = record.metrics
-        passes = m.get("latency_passes_p50", [])
+        passes = m.passes.p50 or ()
         per_pass = f"  (p50 per pass: {', '.join(f'{p:.3g}' for p in passes)} ms)" if len(passes) > 1 else ""
-        latency = m["latency_ms"]
-        return (f"[green]✓[/] {name}  p50 {latency['p50']:.3g} ms  p99 {latency['p99']:.3g} ms"
-                f"  {m['throughput_sps']:.0f} samples/s  {_accuracy(m)}  {m['size_bytes'] / 2**20:.2f} MiB"
-                f"{per_pass}{_disturbed(m)}{_calibration(m)}")
+        return (f"[green]✓[/] {name}  p50 {m.latency.p50:.3g} ms  p99 {m.latency.p99:.3g} ms"
+                f"  {m.throughput.sps:.0f} samples/s  {_accuracy(m.task)}  {m.size.bytes / 2**20:.2f} MiB"
+                f"{per_pass}{_disturbed(m.interference)}{_calibration(m)}")
     lines = (record.reason or "").strip().splitlines()
     mark = "[yellow]–[/] skipped" if record.status == "skipped" else "[red]✗[/] failed"
     return f"{mark} {escape(name)}: {escape(lines[0] if lines else '')}"

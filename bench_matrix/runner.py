@@ -16,6 +16,7 @@ from bench_matrix.executors.base import Ended, Executor, Limits, Work
 from bench_matrix.jobs import ConvertJob, DatasetJob, FinetuneJob, MeasureJob, ModelJob
 from bench_matrix.jobs.results import Converted, PreparedData, PreparedModel
 from bench_matrix.measure import env as environment
+from bench_matrix.measurement import Measurement
 from bench_matrix.plan import ModelPlan, Plan
 from bench_matrix.progress import RunProgress
 from bench_matrix.scenarios.base import fields
@@ -228,7 +229,7 @@ class Runner:
             self._finished(self._record(p, "failed", reason, started, env=ended.env, artifact=artifact))
             return
         measured = ended.result
-        metrics = {**measured.metrics, "latency_passes_p50": [measured.metrics["latency_ms"]["p50"]]}
+        metrics = measured.metrics.with_fields(latency_passes_p50=[measured.metrics.latency.p50])
         record = self._record(p, "ok", None, started, metrics=metrics, env=measured.env, artifact=artifact)
         self._finished(record, measured.samples)
         job = ended.jobs[-1]
@@ -255,16 +256,18 @@ class Runner:
 
     def _passed(self, again: _Again, ended: Ended) -> None:
         record = again.record
-        passes, samples = record.metrics["latency_passes_p50"], None
+        samples = None
         if ended.ok:
             new = ended.result.metrics
-            passes.append(new["latency_ms"]["p50"])
+            passes = [*record.metrics.passes.p50, new.latency.p50]
+            record.metrics = record.metrics.with_fields(latency_passes_p50=passes)
             if _disturbance(new) < _disturbance(record.metrics):
                 once = {k: v for name in again.kept for k, v in fields(name, record.metrics).items()}
-                record.metrics = {**new, **once, "latency_passes_p50": passes}
+                record.metrics = new.with_fields(**once, latency_passes_p50=passes)
                 record.env, samples = ended.result.env, ended.result.samples
         else:
-            record.metrics["latency_passes_failed"] = record.metrics.get("latency_passes_failed", 0) + 1
+            failed = (record.metrics.passes.failed or 0) + 1
+            record.metrics = record.metrics.with_fields(latency_passes_failed=failed)
         record.finished_at = _now()
         self.store.put(record, samples)
         self.progress.finished(record)
@@ -275,17 +278,18 @@ class Runner:
         return record is not None and (record.status, record.reason, record.fingerprint) == (
             "skipped", p.reason, p.fingerprint)
 
-    def _record(self, p: CellPlan, status: str, reason: str | None, started: str, metrics: dict | None = None,
-                env: dict | None = None, artifact: str | None = None) -> CellRecord:
-        return CellRecord(cell=p.cell, status=status, reason=reason, metrics=metrics or {},
+    def _record(self, p: CellPlan, status: str, reason: str | None, started: str,
+                metrics: Measurement | None = None, env: dict | None = None, artifact: str | None = None
+                ) -> CellRecord:
+        return CellRecord(cell=p.cell, status=status, reason=reason, metrics=metrics or Measurement(),
                           artifact_path=artifact, env=env or environment.capture(), started_at=started,
                           finished_at=_now(), fingerprint=p.fingerprint, matrix=str(self.matrix.path),
                           run_id=self.run_id)
 
 
-def _disturbance(metrics: dict[str, Any]) -> tuple[bool, float]:
+def _disturbance(metrics: Measurement) -> tuple[bool, float]:
     """How a pass ranks: unflagged before flagged, then the lower p50 (interference only adds time)."""
-    return bool((metrics.get("interference") or {}).get("flagged")), metrics["latency_ms"]["p50"]
+    return bool(metrics.interference and metrics.interference.flagged), metrics.latency.p50
 
 
 def _now() -> str:

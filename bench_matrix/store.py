@@ -17,6 +17,7 @@ import numpy as np
 from bench_matrix.cell import Cell
 from bench_matrix.errors import UserError
 from bench_matrix.measure.stats import unpack_samples
+from bench_matrix.measurement import Measurement
 from bench_matrix.store_format import (
     RECORD_COLUMNS,
     RUN_COLUMNS,
@@ -43,7 +44,7 @@ class CellRecord:
     cell: Cell
     status: Status
     reason: str | None = None
-    metrics: dict[str, Any] = field(default_factory=dict)
+    metrics: Measurement = field(default_factory=Measurement)  # a dict given is read as its JSON
     artifact_path: str | None = None
     env: dict[str, Any] = field(default_factory=dict)
     started_at: str | None = None
@@ -53,6 +54,10 @@ class CellRecord:
     run_id: int | None = None  # the run that wrote it; None until stored
     id: int | None = None  # its row in the store; None until stored
 
+    def __post_init__(self) -> None:
+        if not isinstance(self.metrics, Measurement):
+            self.metrics = Measurement.from_json(self.metrics)
+
     @property
     def host(self) -> str | None:
         """The machine the record was measured (or skipped) on."""
@@ -60,7 +65,7 @@ class CellRecord:
 
     def to_json(self) -> dict[str, Any]:
         return {"cell": self.cell.as_dict(), "host": self.host, "status": self.status, "reason": self.reason,
-                "metrics": self.metrics, "artifact_path": self.artifact_path, "env": self.env,
+                "metrics": self.metrics.to_json(), "artifact_path": self.artifact_path, "env": self.env,
                 "started_at": self.started_at, "finished_at": self.finished_at,
                 "fingerprint": self.fingerprint, "matrix": self.matrix, "run": self.run_id, "record": self.id}
 
@@ -182,7 +187,8 @@ class ResultStore:
         c = record.cell
         values = {"run_id": record.run_id, "key": c.key, "host": record.host or "unknown",
                   "fingerprint": record.fingerprint, "matrix": record.matrix, **c.as_dict(),
-                  "status": record.status, "reason": record.reason, "metrics": json.dumps(record.metrics),
+                  "status": record.status, "reason": record.reason,
+                  "metrics": json.dumps(record.metrics.to_json()),
                   "artifact_path": record.artifact_path, "env": json.dumps(record.env),
                   "started_at": record.started_at, "finished_at": record.finished_at}
         row = [values[name] for name in RECORD_COLUMNS]
@@ -225,7 +231,7 @@ class ResultStore:
         made."""
         record = self.latest_on(cell, hosts)
         return (record is not None and record.status == "ok" and record.fingerprint == fingerprint
-                and len(record.metrics.get("latency_passes_p50", [0])) >= passes)
+                and record.metrics.passes.made >= passes)
 
     def records(self, run: int | None = None) -> list[CellRecord]:
         """The records of one run, or (by default) the newest record of every cell on every host."""
@@ -298,7 +304,8 @@ def _record(row: tuple) -> CellRecord:
     values = dict(zip(("id", *RECORD_COLUMNS), row))
     cell = Cell(*(values[k] for k in ("model", "framework", "backend", "strategy", "precision", "target")))
     return CellRecord(cell=cell, status=values["status"], reason=values["reason"],
-                      metrics=json.loads(values["metrics"]), artifact_path=values["artifact_path"],
+                      metrics=Measurement.from_json(json.loads(values["metrics"])),
+                      artifact_path=values["artifact_path"],
                       env=json.loads(values["env"]), started_at=values["started_at"],
                       finished_at=values["finished_at"], fingerprint=values["fingerprint"],
                       matrix=values["matrix"], run_id=values["run_id"], id=values["id"])

@@ -69,6 +69,7 @@ def start_cluster(root: Path):
 
 def fixed_cost(project: Path, address: str) -> dict[str, float]:
     """Seconds the driver spends once per run: connecting to the cluster, probing every node."""
+    from bench_matrix.executors.local import probe
     from bench_matrix.executors.ray_cluster import RayExecutor
     from bench_matrix.matrix import load_matrix
     from bench_matrix.plan import resolve
@@ -76,7 +77,7 @@ def fixed_cost(project: Path, address: str) -> dict[str, float]:
     from bench_matrix.workspace import Workspace
 
     ws = Workspace(project / "ws")
-    plan = resolve(load_matrix(project / "m.yaml", backends=list(available())), ws)
+    plan = resolve(load_matrix(project / "m.yaml", backends=list(available())), ws, probe)
     begin = time.perf_counter()
     executor = RayExecutor(ws, address)
     connected = time.perf_counter()

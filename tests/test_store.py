@@ -16,6 +16,7 @@ import pytest
 from bench_matrix.cell import Cell
 from bench_matrix.errors import UserError
 from bench_matrix.measure.stats import pack_samples
+from bench_matrix.measurement import Measurement
 from bench_matrix.store import CellRecord, ResultStore
 from bench_matrix.store_format import MIGRATED_LABEL, STORE_VERSION
 
@@ -175,7 +176,7 @@ def test_raw_samples_round_trip_and_follow_their_record(tmp_path):
     assert "samples" not in stored.to_json()["metrics"]  # records (and report json) stay small
     again.close()
     store = ResultStore(path)
-    record.metrics = {"latency_passes_p50": [1.2, 1.4]}
+    record.metrics = Measurement.from_json({"latency_passes_p50": [1.2, 1.4]})
     store.put(record)  # a later pass of the same run updates its record
     assert len(store.records(run.id)) == 1 and len(store.samples(record)) == 4  # and keeps its samples
     record.status = "failed"

@@ -6,9 +6,11 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 
+from bench_matrix.errors import UserError
 from bench_matrix.executors.base import Ended, Executor, Limits, Phase, Tick, Work
 from bench_matrix.executors.process import run_in_process
 from bench_matrix.jobs import Job, ProbeJob
+from bench_matrix.jobs.results import Probe
 from bench_matrix.measure import env as environment
 from bench_matrix.workspace import Workspace
 
@@ -19,6 +21,14 @@ def probe_here(job: ProbeJob) -> Ended:
     """Run a probe job on this machine (log: the workspace's probe log)."""
     limits = Limits(job.workspace.log("probe"), PROBE_TIMEOUT_S)
     return LocalExecutor(job.workspace).run(Work(job, limits))
+
+
+def probe(job: ProbeJob) -> Probe:
+    """The probe job's result, run on this machine; a UserError when it fails."""
+    ended = probe_here(job)
+    if not ended.ok:
+        raise UserError(f"probing the installed backends failed: {ended.error}")
+    return ended.result
 
 
 class LocalExecutor(Executor):

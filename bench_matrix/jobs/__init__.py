@@ -7,11 +7,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-from bench_matrix.cell import Cell
+from bench_matrix.cell import Cell, Planned
 from bench_matrix.jobs.results import Converted, Finetuned, Measured, PreparedData, PreparedModel, Probe
 from bench_matrix.matrix.expand import TrainingKey, VerdictKey
 from bench_matrix.matrix.spec import DatasetSpec, ModelSpec, Settings, StrategySpec
-from bench_matrix.scenarios.base import Planned
 from bench_matrix.sources import SourceModel
 from bench_matrix.tensors import TensorSpec
 from bench_matrix.workspace import Workspace

@@ -6,22 +6,24 @@ from __future__ import annotations
 import time
 
 from bench_matrix.phases import phase
+from bench_matrix.cell import Planned
 from bench_matrix.jobs import MeasureJob
 from bench_matrix.jobs.results import Measured
 from bench_matrix.measure import env as environment
 from bench_matrix.measure.affinity import pin_threads
 from bench_matrix.measure.gpu import GpuMemory
+from bench_matrix.measurement import Measurement
 from bench_matrix.named import resolve
 from bench_matrix.registry import load_backend
 from bench_matrix.scenarios import latency
-from bench_matrix.scenarios.base import Loaded, Outcome, Planned
+from bench_matrix.scenarios.base import Loaded, Outcome
 
 
 def measure(job: MeasureJob) -> Measured:
     """Load the session, measure its latency, then each planned scenario in order, after every timed loop."""
     loaded = load(job)
     outcomes = [latency.run(loaded), *(_run(planned, loaded) for planned in job.scenarios)]
-    metrics = {k: v for outcome in outcomes for k, v in outcome.fields.items()}
+    metrics = Measurement.from_json({k: v for outcome in outcomes for k, v in outcome.fields.items()})
     samples = {k: v for outcome in outcomes for k, v in outcome.samples.items()}
     env = {**environment.capture(), "backend_versions": loaded.backend.versions(),
            "runtime": loaded.session.info()}

@@ -9,6 +9,7 @@ from typing import Any
 
 from bench_matrix.matrix.expand import TrainingKey, Verdict, VerdictKey
 from bench_matrix.matrix.spec import Preprocess
+from bench_matrix.measurement import Measurement
 from bench_matrix.sources import SourceModel
 from bench_matrix.sources.forward_call import Parameter
 from bench_matrix.tensors import TensorSpec
@@ -98,9 +99,9 @@ class Converted(Result):
 
 @dataclass(frozen=True)
 class Measured(Result):
-    """The measure job's result: the cell's metrics, its raw latencies (stats.pack_samples bytes, by series)
-    and the environment it was measured in."""
+    """The measure job's result: the cell's typed measurement, its raw latencies (stats.pack_samples bytes, by
+    series) and the environment it was measured in."""
 
-    metrics: dict[str, Any]
+    metrics: Measurement
     samples: dict[str, bytes]
     env: dict[str, Any]

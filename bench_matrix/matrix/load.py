@@ -17,9 +17,8 @@ from bench_matrix.matrix.schema import (
     CELL_KEYS,
     FRAMEWORKS,
     STRATEGY_KINDS,
-    axis_values,
-    installed_schema,
 )
+from bench_matrix.matrix.extended import axis_values, installed_schema
 from bench_matrix.matrix.spec import (
     DEFAULT_LAYOUT,
     MODEL_SUFFIXES,

@@ -5,13 +5,16 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Any
 
 from bench_matrix.measure.metrics import DIRECTIONS, SNR_LIMIT_DB
+from bench_matrix.measurement import Measurement
 from bench_matrix.report.summary import (
     ModelSummary,
     Report,
     Row,
     disturbed_phases,
+    figure,
     metric,
     number,
     p50,
@@ -78,10 +81,10 @@ def _method(row: Row) -> str:
 APPROXIMATE = " ~"  # after a figure of a timed phase that was disturbed or unsteady: see docs/metrics.md
 
 
-def _timed(phase: str, *path: str) -> Callable[[Row], str]:
+def _timed(phase: str, read: Callable[[Measurement], Any]) -> Callable[[Row], str]:
     """A figure of a timed phase, marked APPROXIMATE when that phase never had a clean attempt."""
     def render(row: Row) -> str:
-        text = sig(metric(row.record, *path), 3)
+        text = sig(figure(row.record, read), 3)
         marked = phase in disturbed_phases(row.record) or phase in unsteady_phases(row.record)
         return text + APPROXIMATE if text != DASH and marked else text
     return render
@@ -89,8 +92,12 @@ def _timed(phase: str, *path: str) -> Callable[[Row], str]:
 
 def _ci(row: Row) -> str:
     """Half the width of the p50's 95 % confidence interval, in % of the p50."""
-    width = metric(row.record, "latency_ms", "p50_ci_rel")
+    width = figure(row.record, lambda m: m.latency and m.latency.p50_ci_rel)
     return DASH if width is None else f"{width * 50:.1f}"
+
+
+def _gpu_mb(m: Measurement) -> float | None:
+    return m.memory.gpu_mb
 
 
 HOST = Column("Host", "the machine that measured the cell (shown when this model's cells come from more "
@@ -99,9 +106,9 @@ SIZE, ACCURACY, SPEED, THROUGHPUT = "size", "accuracy", "speed", "throughput"
 LEADING: tuple[Column, ...] = (
     Column("Method", "backend, strategy and precision (and target when not cpu) of the cell.", _method, ""),
     Column("Size\nMiB", "size of the converted model artifact on disk, in MiB (2^20 bytes).",
-           lambda r: mib(metric(r.record, "size_bytes")), SIZE),
+           lambda r: mib(figure(r.record, lambda m: m.size.bytes)), SIZE),
     Column("gzip\nMiB", "size of the artifact after gzip, in MiB: what weight sharing and pruning save in transfer.",
-           lambda r: mib(metric(r.record, "size_gzip_bytes")), SIZE),
+           lambda r: mib(figure(r.record, lambda m: m.size.gzip_bytes)), SIZE),
     Column("Size\nratio", "baseline size ÷ cell size: above 1× the cell's artifact is that many times smaller.",
            lambda r: times(r.size_ratio), SIZE),
     Column("Sparsity", "fraction of exactly-zero weights in the convolution and dense kernels of a fine-tuned "
@@ -118,22 +125,22 @@ TRAILING: tuple[Column, ...] = (
                        "\"~\" after a timing figure marks a phase that had no clean attempt: disturbed by "
                        "other processes or CPU steal above the limits, or unsteady (its chunk medians "
                        "drifted); treat it as approximate (the cell is listed under Disturbed or Unsteady).",
-           _timed("latency", "latency_ms", "p50"), SPEED),
+           _timed("latency", lambda m: m.latency and m.latency.p50), SPEED),
     Column("p50 CI\n±%", "half the width of the 95 % confidence interval of the p50 (distribution-free, "
            "from order statistics), in % of the p50.", _ci, SPEED, optional=True),
     Column("e2e p50\nms", "GPU cells: median latency at batch 1 including the host-to-device copy of the input "
            "and the copy of the outputs back (p50 ms counts the computation only, input already on the device).",
-           _timed("latency_e2e", "latency_ms_e2e", "p50"), SPEED, optional=True),
+           _timed("latency_e2e", lambda m: m.latency_e2e and m.latency_e2e.p50), SPEED, optional=True),
     Column("p90\nms", "90th-percentile latency at batch 1, in milliseconds.",
-           _timed("latency", "latency_ms", "p90"), SPEED),
+           _timed("latency", lambda m: m.latency and m.latency.p90), SPEED),
     Column("p99\nms", "99th-percentile latency at batch 1, in milliseconds.",
-           _timed("latency", "latency_ms", "p99"), SPEED),
+           _timed("latency", lambda m: m.latency and m.latency.p99), SPEED),
     Column("Throughput\nsamples/s", "samples per second at the batch size given above the table.",
-           _timed("throughput", "throughput_sps"), THROUGHPUT),
+           _timed("throughput", lambda m: m.throughput.sps), THROUGHPUT),
     Column("Peak RSS\nMiB", "peak resident memory of the process that measured the cell, in MiB.",
-           lambda r: fixed(metric(r.record, "peak_rss_mb"), 1), THROUGHPUT),
+           lambda r: fixed(figure(r.record, lambda m: m.memory.peak_rss_mb), 1), THROUGHPUT),
     Column("GPU\nMiB", "GPU cells: GPU memory the measuring process held after its runs, in MiB (see "
-           "docs/metrics.md for how it is read).", lambda r: fixed(metric(r.record, "peak_gpu_mem_mb"), 0),
+           "docs/metrics.md for how it is read).", lambda r: fixed(figure(r.record, _gpu_mb), 0),
            THROUGHPUT, optional=True),
     Column("Speed-up", "baseline p50 ÷ cell p50: above 1× the cell is faster than the baseline.",
            lambda r: times(r.speedup), SPEED),
@@ -252,7 +259,7 @@ def cell_names(model: ModelSummary, records: Iterable[CellRecord]) -> list[str]:
 
 def _plugin_columns(rows: Iterable[Row]) -> list[Column]:
     """One column per metric-plugin figure ("NAME.FIGURE" keys) that some row holds."""
-    keys = sorted({key for r in rows for key, value in r.record.metrics.items()
+    keys = sorted({key for r in rows for key, value in r.record.metrics.others.items()
                    if "." in key and number(value) is not None})
     return [Column(key, "figure `{1}` of the metric plugin `{0}` (its direction: see the plugin)."
                    .format(*key.split(".", 1)), _metric(key, _sig(4)), ACCURACY) for key in keys]

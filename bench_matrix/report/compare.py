@@ -19,15 +19,17 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.stats import fisher_exact, mannwhitneyu
 
 from bench_matrix.errors import UserError
 from bench_matrix.measure.metrics import DIRECTIONS, HEADLINE
-from bench_matrix.report.summary import disturbed_phases, headline, metric
+from bench_matrix.measurement import Measurement
+from bench_matrix.report.summary import disturbed_phases, figure, headline
 from bench_matrix.store import CellRecord
 
 METRICS = ("p50", "p99", "throughput", "size", "accuracy")
@@ -181,7 +183,7 @@ def _task(side: Side, record: CellRecord, tasks: Mapping[str, str]) -> str:
     if known:
         return known
     present = [task for task in ("classification", "regression", "none")
-               if metric(record, HEADLINE[task]) is not None]
+               if figure(record, lambda m: m.task.figure(HEADLINE[task])) is not None]
     return present[0] if present else "regression"
 
 
@@ -227,11 +229,13 @@ def _phase_disturbed(pair: _Pair, phase: str) -> str | None:
         if sides else None
 
 
-def _values(pair: _Pair, *path: str) -> tuple[float | None, float | None, str | None]:
-    """A metric of both records, and why it cannot be compared when a side lacks it (or it is not finite)."""
-    base, new = (_finite(metric(record, *path)) for record in pair.both())
+def _values(pair: _Pair, name: str, read: Callable[[Measurement], Any]
+            ) -> tuple[float | None, float | None, str | None]:
+    """A figure (`name`, as `read`) of both records, and why it cannot be compared when a side lacks it (or it
+    is not finite)."""
+    base, new = (_finite(figure(record, read)) for record in pair.both())
     missing = [role for role, value in (("base", base), ("new", new)) if value is None]
-    return base, new, f"no {'.'.join(path)} in {' and '.join(missing)}" if missing else None
+    return base, new, f"no {name} in {' and '.join(missing)}" if missing else None
 
 
 def _finite(value: float | None) -> float | None:
@@ -240,7 +244,7 @@ def _finite(value: float | None) -> float | None:
 
 def _latency(pair: _Pair, which: str, limits: Mapping[str, float], alpha: float) -> MetricChange:
     """p50 or p99: worse or better only when the samples differ significantly and beyond the threshold."""
-    base, new, why = _values(pair, "latency_ms", which)
+    base, new, why = _values(pair, f"latency_ms.{which}", lambda m: m.latency and getattr(m.latency, which))
     judge = _MetricJudge(which, f"latency_ms.{which}", base, new, True, limits[which], "lower")
     if why:
         return judge.not_comparable(why)
@@ -277,7 +281,7 @@ def _tail_p_value(before: np.ndarray, after: np.ndarray) -> float:
 def _throughput(pair: _Pair, limits: Mapping[str, float], alpha: float) -> MetricChange:
     """Samples per second: tested on the batch durations where both sides stored them (Mann-Whitney U),
     judged by the threshold alone for records from before they were kept."""
-    base, new, why = _values(pair, "throughput_sps")
+    base, new, why = _values(pair, "throughput_sps", lambda m: m.throughput.sps)
     judge = _MetricJudge("throughput", "throughput_sps", base, new, True, limits["throughput"], "higher")
     why = why or _phase_disturbed(pair, "throughput")
     if why:
@@ -290,7 +294,7 @@ def _throughput(pair: _Pair, limits: Mapping[str, float], alpha: float) -> Metri
 
 
 def _size(pair: _Pair, limits: Mapping[str, float]) -> MetricChange:
-    base, new, why = _values(pair, "size_bytes")
+    base, new, why = _values(pair, "size_bytes", lambda m: m.size.bytes)
     judge = _MetricJudge("size", "size_bytes", base, new, True, limits["size"], "lower")
     return judge.not_comparable(why) if why else judge.judged()
 
@@ -304,7 +308,7 @@ def _accuracy(pair: _Pair, limits: Mapping[str, float]) -> MetricChange:
     if tasks[0] != tasks[1]:
         judge = _MetricJudge("accuracy", name, None, None, relative, threshold, DIRECTIONS[name])
         return judge.not_comparable(f"different task: {tasks[0]} in base, {tasks[1]} in new")
-    base, new, why = _values(pair, name)
+    base, new, why = _values(pair, name, lambda m: m.task.figure(name))
     judge = _MetricJudge("accuracy", name, base, new, relative, threshold, DIRECTIONS[name])
     return judge.not_comparable(why) if why else judge.judged()
 

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from bench_matrix.measurement import LatencyStats
 from bench_matrix.report.columns import MIB
 from bench_matrix.report.summary import Report, Row, disturbed_phases, headline, metric, number
 from bench_matrix.store import CellRecord
@@ -54,25 +55,24 @@ def csv_row(record: CellRecord, row: Row | None, task: str) -> dict[str, Any]:
                  "sparsity", "clusters", "load_s", "threads", "top1", "top5", "top1_agreement",
                  "cosine_similarity", "snr_db"):
         out[name] = _plain(metric(record, name))
-    for name in ("gpu_name", "outputs_sha256"):
-        value = record.metrics.get(name)
+    m = record.metrics
+    for name, value in (("gpu_name", m.memory.gpu_name), ("outputs_sha256", m.task.outputs_sha256)):
         out[name] = value if isinstance(value, str) else ""
-    out["latency_e2e_p50_ms"] = _plain(metric(record, "latency_ms_e2e", "p50"))
-    for name in ("size", "size_gzip"):
-        size = metric(record, f"{name}_bytes")
-        out[f"{name}_mib"] = "" if size is None else round(size / MIB, 6)
+    out["latency_e2e_p50_ms"] = _plain(number(m.latency_e2e and m.latency_e2e.p50))
+    for name, size in (("size", m.size.bytes), ("size_gzip", m.size.gzip_bytes)):
+        out[f"{name}_mib"] = "" if number(size) is None else round(size / MIB, 6)
     for stat in LATENCY_STATS:
-        out[f"latency_{stat}_ms"] = _plain(metric(record, "latency_ms", stat))
-    out["latency_n"] = _plain(metric(record, "latency_ms", "n"))
-    out["latency_attempts"] = _plain(metric(record, "latency_attempts"))
-    out["latency_stability"] = _plain(metric(record, "latency_stability"))
-    for prefix, series in (("latency", "latency_ms"), ("latency_e2e", "latency_ms_e2e")):
-        low, high = _interval(record, series)
+        out[f"latency_{stat}_ms"] = _plain(number(m.latency and getattr(m.latency, stat)))
+    out["latency_n"] = _plain(number(m.latency and m.latency.n))
+    out["latency_attempts"] = _plain(number(m.passes.attempts))
+    out["latency_stability"] = _plain(number(m.passes.stability))
+    for prefix, series in (("latency", m.latency), ("latency_e2e", m.latency_e2e)):
+        low, high = _interval(series)
         out[f"{prefix}_p50_ci_low_ms"], out[f"{prefix}_p50_ci_high_ms"] = _plain(low), _plain(high)
     phases = disturbed_phases(record)
     out["interference_flagged"] = "" if record.status != "ok" else str(bool(phases)).lower()
     out["interference_reason"] = " | ".join(f"{name}: {why}" for name, why in phases.items())
-    cached = record.metrics.get("artifact_cached")
+    cached = m.others.get("artifact_cached")
     out["artifact_cached"] = "" if not isinstance(cached, bool) else str(cached).lower()
     out["speedup_vs_baseline"] = _plain(row.speedup if row else None)
     out["size_ratio_vs_baseline"] = _plain(row.size_ratio if row else None)
@@ -81,11 +81,10 @@ def csv_row(record: CellRecord, row: Row | None, task: str) -> dict[str, Any]:
     return out
 
 
-def _interval(record: CellRecord, series: str) -> tuple[float | None, float | None]:
+def _interval(stats: LatencyStats | None) -> tuple[float | None, float | None]:
     """The stored 95 % interval [lo, hi] of a series' p50, or (None, None)."""
-    stats = record.metrics.get(series)
-    interval = stats.get("p50_ci") if isinstance(stats, dict) else None
-    if isinstance(interval, list) and len(interval) == 2:
+    interval = stats.p50_ci if stats is not None else None
+    if isinstance(interval, tuple) and len(interval) == 2:
         return number(interval[0]), number(interval[1])
     return None, None
 

@@ -12,7 +12,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from bench_matrix.measure.metrics import DIRECTIONS, HEADLINE
-from bench_matrix.report.summary import ModelSummary, metric, p50
+from bench_matrix.report.summary import ModelSummary, figure, metric, p50
 from bench_matrix.store import CellRecord
 
 MIB = 2**20
@@ -75,14 +75,15 @@ def points(model: ModelSummary) -> tuple[list[Point], list[CellRecord]]:
             kept.append((row.record, latency, accuracy))
     optimal = pareto_optimal([(latency, accuracy) for _, latency, accuracy in kept], higher)
     found = [Point(number=k + 1, record=record, latency_ms=latency, accuracy=accuracy,
-                   size_bytes=metric(record, "size_bytes"), ci=_interval(record), optimal=optimal[k])
+                   size_bytes=figure(record, lambda m: m.size.bytes), ci=_interval(record),
+                   optimal=optimal[k])
              for k, (record, latency, accuracy) in enumerate(kept)]
     return found, left_out
 
 
 def _interval(record: CellRecord) -> tuple[float, float] | None:
-    latency = record.metrics.get("latency_ms")
-    interval = latency.get("p50_ci") if isinstance(latency, dict) else None
+    latency = record.metrics.latency
+    interval = latency.p50_ci if latency is not None else None
     if isinstance(interval, list | tuple) and len(interval) == 2 and all(
             isinstance(v, int | float) and math.isfinite(v) for v in interval):
         return float(interval[0]), float(interval[1])

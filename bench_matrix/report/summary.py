@@ -10,6 +10,7 @@ from typing import Any
 from bench_matrix.measure.affinity import NOT_EXPOSED
 from bench_matrix.measure.metrics import HEADLINE
 from bench_matrix.measure.timing import DRIFT_LIMIT
+from bench_matrix.measurement import Measurement
 from bench_matrix.store import CellRecord
 
 STATUSES = ("ok", "skipped", "failed")
@@ -71,11 +72,11 @@ class ModelSummary:
 
     @property
     def batch_sizes(self) -> tuple[int, ...]:
-        return _distinct_metric(self.rows, "batch_size")
+        return _distinct_metric(self.rows, lambda m: m.throughput.batch_size)
 
     @property
     def threads(self) -> tuple[int, ...]:
-        return _distinct_metric(self.rows, "threads")
+        return _distinct_metric(self.rows, lambda m: m.setup.threads)
 
 
 @dataclass(frozen=True)
@@ -93,16 +94,19 @@ def number(value: Any) -> float | None:
     return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
 
 
-def metric(record: CellRecord, *path: str) -> float | None:
-    """A numeric metric by key path (e.g. "latency_ms", "p50"), or None when absent or malformed."""
-    value: Any = record.metrics
-    for key in path:
-        value = value.get(key) if isinstance(value, dict) else None
-    return number(value)
+def metric(record: CellRecord, key: str) -> float | None:
+    """A numeric metric by its record key (a task metric, a plugin's NAME.FIGURE), or None when absent or
+    malformed."""
+    return number(record.metrics.get(key))
+
+
+def figure(record: CellRecord, read: Callable[[Measurement], Any]) -> float | None:
+    """A numeric figure read from the typed measurement (e.g. `lambda m: m.throughput.sps`), or None."""
+    return number(read(record.metrics))
 
 
 def p50(record: CellRecord) -> float | None:
-    return metric(record, "latency_ms", "p50")
+    return figure(record, lambda m: m.latency and m.latency.p50)
 
 
 def headline(text: str | None) -> str:
@@ -159,17 +163,17 @@ def disturbed_phases(record: CellRecord) -> dict[str, str]:
 def unsteady_phases(record: CellRecord) -> dict[str, str]:
     """The timed phases whose kept attempt still drifted, with why; for a record from before interference was
     measured, its latency when its chunk medians drifted."""
-    if isinstance(record.metrics.get("interference"), dict):
+    if record.metrics.interference is not None:
         return _kept_problems(record, "unsteady")
-    stability = metric(record, "latency_stability")
+    stability = figure(record, lambda m: m.passes.stability)
     return ({"latency": f"chunk medians drifted by {stability:.0%} (limit {DRIFT_LIMIT:.0%})"}
             if stability is not None and stability > DRIFT_LIMIT else {})
 
 
 def _kept_problems(record: CellRecord, kind: str) -> dict[str, str]:
     """The `kind` ("disturbed" or "unsteady") text of each phase's kept attempt, where it has one."""
-    interference = record.metrics.get("interference")
-    phases = interference.get("phases") if isinstance(interference, dict) else None
+    interference = record.metrics.interference
+    phases = interference.phases if interference is not None else None
     found = {}
     for name, phase in (phases if isinstance(phases, dict) else {}).items():
         attempts, kept = (phase.get("attempts"), phase.get("kept")) if isinstance(phase, dict) else ([], None)
@@ -197,7 +201,7 @@ def suspects(records: Iterable[CellRecord]) -> tuple[str, ...]:
     precisions differ: a lower precision that changes no output bit was most likely never applied."""
     groups: dict[str, list[CellRecord]] = {}
     for record in records:
-        digest = record.metrics.get("outputs_sha256")
+        digest = record.metrics.task.outputs_sha256
         if isinstance(digest, str):
             groups.setdefault(digest, []).append(record)
     lines = []
@@ -217,7 +221,7 @@ def _row(record: CellRecord, reference: CellRecord | None, own_fp32: CellRecord 
         return Row(record, False, None, None, None, own)
     return Row(record=record, is_baseline=record is reference,
                speedup=_ratio(p50(reference), p50(record)),
-               size_ratio=_ratio(metric(reference, "size_bytes"), metric(record, "size_bytes")),
+               size_ratio=_ratio(*(figure(r, lambda m: m.size.bytes) for r in (reference, record))),
                mse_delta=_difference(record, reference, "mse"), speedup_own_fp32=own,
                accuracy_delta=_difference(record, reference, headline_metric) if headline_metric else None)
 
@@ -231,8 +235,8 @@ def _ratio(numerator: float | None, denominator: float | None) -> float | None:
     return None if numerator is None or denominator is None or denominator <= 0 else numerator / denominator
 
 
-def _distinct_metric(rows: Iterable[Row], key: str) -> tuple[int, ...]:
-    values = {metric(r.record, key) for r in rows}
+def _distinct_metric(rows: Iterable[Row], read: Callable[[Measurement], Any]) -> tuple[int, ...]:
+    values = {figure(r.record, read) for r in rows}
     return tuple(sorted(int(v) for v in values if v is not None))
 
 

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 if TYPE_CHECKING:
     from bench_matrix.backend import Backend, Session
+    from bench_matrix.cell import Planned
     from bench_matrix.jobs import MeasureJob
     from bench_matrix.matrix.spec import DatasetSpec, Matrix, ModelSpec
     from bench_matrix.matrix.yamlpos import Located
@@ -36,24 +37,6 @@ class Outcome:
 
     fields: dict[str, Any]
     samples: dict[str, bytes] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class Planned:
-    """A scenario decided for one cell, in the parent; the measure job carries it to the artifact's process,
-    which runs `function` ('module:function', taking Loaded and this, giving an Outcome)."""
-
-    name: ClassVar[str]  # the scenario's; its record fields are `name` or start with `name_`
-    function: ClassVar[str]
-    repeat: ClassVar[bool] = False  # run again by later passes; else the record keeps the first pass's fields
-
-    def fingerprint(self) -> dict[str, Any]:
-        """What the scenario's fields depend on beyond the cell's own fingerprint."""
-        raise NotImplementedError
-
-    def describe(self) -> str:
-        """What `bench-matrix plan` shows for the cell under the scenario's column (rich markup)."""
-        raise NotImplementedError
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bench_matrix.matrix.spec import LabelSpec, Matrix
-from bench_matrix.scenarios.base import Loading, Planned, Scenario
+from bench_matrix.cell import Planned
+from bench_matrix.scenarios.base import Loading, Scenario
 from bench_matrix.scenarios.closed_loop.section import closed_loop, drive_problem
 from bench_matrix.scenarios.closed_loop.spec import SCHEMA, ClosedLoopSpec
 

@@ -10,7 +10,8 @@ from typing import Any
 
 from bench_matrix.report.columns import DASH, fixed, mib, sig
 from bench_matrix.report.html_parts import esc, table
-from bench_matrix.report.summary import ModelSummary, number
+from bench_matrix.measurement import Measurement
+from bench_matrix.report.summary import ModelSummary, figure, number
 from bench_matrix.store import CellRecord
 
 MODE_NAMES = {"lock_step": "lock-step", "real_time": "real-time"}
@@ -52,13 +53,9 @@ def _stop(lap: Lap) -> str:
     return str(lap.metrics.get("stop_reason") or DASH).replace("_", " ")
 
 
-def _offline(*path: str, render: Callable[[float | None], str]) -> Callable[[Lap], str]:
-    def cell(lap: Lap) -> str:
-        found: Any = lap.record.metrics
-        for key in path:
-            found = found.get(key) if isinstance(found, dict) else None
-        return render(number(found))
-    return cell
+def _offline(read: Callable[[Measurement], Any], render: Callable[[float | None], str]
+             ) -> Callable[[Lap], str]:
+    return lambda lap: render(figure(lap.record, read))
 
 
 def _lap(*path: str, render: Callable[[float | None], str]) -> Callable[[Lap], str]:
@@ -107,10 +104,11 @@ COLUMNS: tuple[LapColumn, ...] = (
     LapColumn("Stop", "why the lap ended: lap completed, off road (too long in one go), stuck, time limit.",
               _stop, numeric=False),
     LapColumn("MSE", "offline: the cell's test MSE on the normalised labels.",
-              _offline("mse", render=_digits(4))),
+              _offline(lambda m: m.task.mse, render=_digits(4))),
     LapColumn("p50 ms", "offline: the cell's median latency at batch 1.",
-              _offline("latency_ms", "p50", render=_digits(3))),
-    LapColumn("Size MiB", "offline: the artifact's size on disk.", _offline("size_bytes", render=mib),
+              _offline(lambda m: m.latency and m.latency.p50, render=_digits(3))),
+    LapColumn("Size MiB", "offline: the artifact's size on disk.",
+              _offline(lambda m: m.size.bytes, render=mib),
               terminal=False),
 )
 
@@ -119,7 +117,7 @@ def laps(model: ModelSummary) -> list[Lap]:
     """Every stored lap of the model's ok cells, in the results table's order, then circuit and mode."""
     found = []
     for row in model.rows:
-        driven = row.record.metrics.get("closed_loop")
+        driven = row.record.metrics.others.get("closed_loop")
         for circuit, modes in (driven.items() if isinstance(driven, dict) else ()):
             found += [Lap(row.record, circuit, mode, lap) for mode, lap in modes.items()
                       if isinstance(lap, dict)]
@@ -128,13 +126,14 @@ def laps(model: ModelSummary) -> list[Lap]:
 
 def not_driven(model: ModelSummary) -> list[tuple[CellRecord, str]]:
     """Cells the closed_loop section selected whose model cannot drive, with the reason."""
-    return [(row.record, str(row.record.metrics["closed_loop_skipped"])) for row in model.rows
-            if "closed_loop_skipped" in row.record.metrics]
+    return [(row.record, str(row.record.metrics.others["closed_loop_skipped"])) for row in model.rows
+            if "closed_loop_skipped" in row.record.metrics.others]
 
 
 def driven_records(model: ModelSummary) -> list[CellRecord]:
     """The ok cells that drove at least one lap, in the results table's order."""
-    return [row.record for row in model.rows if isinstance(row.record.metrics.get("closed_loop"), dict)]
+    return [row.record for row in model.rows
+            if isinstance(row.record.metrics.others.get("closed_loop"), dict)]
 
 
 def plot_name(record: CellRecord) -> str:

@@ -36,8 +36,8 @@ def cell_figure(record: CellRecord) -> Any:
     """The figure of one cell: a panel per circuit it drove."""
     from matplotlib.figure import Figure
 
-    laps = record.metrics["closed_loop"]
-    circuits = record.metrics.get("closed_loop_circuits") or {}
+    laps = record.metrics.others["closed_loop"]
+    circuits = record.metrics.others.get("closed_loop_circuits") or {}
     columns = min(len(laps), 3)
     rows = -(-len(laps) // columns)
     figure = Figure(figsize=(PANEL_INCHES * columns, PANEL_INCHES * rows + 0.4))
