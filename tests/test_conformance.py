@@ -167,3 +167,13 @@ def test_the_command_line_narrows_the_backends_checked(zoo_project: Path) -> Non
 def test_a_class_chooses_the_models_its_cases_run_on(zoo: list[pytest.TestReport]) -> None:
     cases = {r.nodeid for r in zoo if _backend(r) == "one_model" and "-cpu-" in r.nodeid and r.passed}
     assert cases and all(nodeid.endswith("-multi_io]") for nodeid in cases), cases
+
+
+def test_the_kit_leaves_other_tests_parametrized_by_case_alone(tmp_path: Path) -> None:
+    """A plugin package's own tests may name a parameter `case` too: the kit deselects only its own."""
+    (tmp_path / "conftest.py").write_text('pytest_plugins = ["bench_matrix.conformance"]\n')
+    (tmp_path / "test_own_cases.py").write_text("import pytest\n\n\n@pytest.mark.parametrize('case', [1, 2])\n"
+                                                "def test_own(case):\n    assert case\n")
+    pytest.main([str(tmp_path / "test_own_cases.py"), "-q", "--collect-only", "-p", "no:cacheprovider"],
+                plugins=[collect := Collected()])
+    assert collect.nodeids == ["test_own_cases.py::test_own[1]", "test_own_cases.py::test_own[2]"]
