@@ -4,9 +4,8 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from functools import cached_property
 from typing import Any, ClassVar
 
 
@@ -161,9 +160,9 @@ _FLAT = {"throughput": Throughput, "size": Size, "memory": Memory, "task": TaskM
 
 
 @dataclass(frozen=True, eq=False)
-class Measurement(Mapping[str, Any]):
+class Measurement:
     """An ok cell's figures, typed; `others` holds the fields of scenarios (closed_loop_*), metric plugins
-    (NAME.FIGURE) and conversion facts. Read (and compared) as a mapping, it is the record's JSON object."""
+    (NAME.FIGURE) and conversion facts. Two are equal when their JSON objects are."""
 
     latency: LatencyStats | None = None
     latency_e2e: LatencyStats | None = None
@@ -201,15 +200,13 @@ class Measurement(Mapping[str, Any]):
         """This measurement with these JSON fields set (added last when new)."""
         return Measurement.from_json({**self.to_json(), **fields})
 
-    @cached_property
-    def _json(self) -> dict[str, Any]:
-        return self.to_json()
+    def figure(self, key: str) -> Any:
+        """A flat figure by its record key (`mse`, `throughput_sps`, a plugin's `NAME.FIGURE`), or None."""
+        for attr, kind in _FLAT.items():
+            names = kind.names()
+            if key in names:
+                return getattr(getattr(self, attr), names[key])
+        return self.others.get(key)
 
-    def __getitem__(self, key: str) -> Any:
-        return self._json[key]
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self._json)
-
-    def __len__(self) -> int:
-        return len(self._json)
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Measurement) and self.to_json() == other.to_json()

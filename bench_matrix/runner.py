@@ -262,7 +262,7 @@ class Runner:
             passes = [*record.metrics.passes.p50, new.latency.p50]
             record.metrics = record.metrics.with_fields(latency_passes_p50=passes)
             if _disturbance(new) < _disturbance(record.metrics):
-                once = {k: v for name in again.kept for k, v in fields(name, record.metrics).items()}
+                once = {k: v for name in again.kept for k, v in fields(name, record.metrics.others).items()}
                 record.metrics = new.with_fields(**once, latency_passes_p50=passes)
                 record.env, samples = ended.result.env, ended.result.samples
         else:

@@ -64,7 +64,7 @@ def measure(workdir: Path) -> dict[str, dict[str, Any]]:
                    capture_output=True)
     store = ResultStore(workdir / "ws" / "results.sqlite", readonly=True)
     try:
-        return {f"{r.cell.model} · {r.cell.label}": r.metrics for r in store.records() if r.status == "ok"}
+        return {f"{r.cell.model} · {r.cell.label}": r.metrics.to_json() for r in store.records() if r.status == "ok"}
     finally:
         store.close()
 

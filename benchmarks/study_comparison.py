@@ -59,7 +59,7 @@ def _num(value: float | None, fmt: str) -> str:
 def _table(title: str, source: str, model: str, rows: list, found: dict[tuple, CellRecord]) -> list[str]:
     base_cell = (model, *rows[0][1:4])
     ours_base = found.get(base_cell)
-    base_mse = ours_base.metrics.get("mse") if ours_base and ours_base.status == "ok" else None
+    base_mse = ours_base.metrics.task.mse if ours_base and ours_base.status == "ok" else None
     study_base = rows[0][5]
     out = [f"## {title}", "", f"Study figures: {source}. Ours: `{model}`; our baseline row is the cell "
            f"`{'/'.join(base_cell[1:])}/cpu`.", "",
@@ -73,9 +73,9 @@ def _table(title: str, source: str, model: str, rows: list, found: dict[tuple, C
             out.append(f"| {label} | {cell} | {_num(size, '.2f')} | not run: {why} | | | {_pct(mse, study_base)} | | |")
             continue
         m = record.metrics
-        out.append(f"| {label} | {cell} | {_num(size, '.2f')} | {m['size_bytes'] / MIB:.2f} | "
-                   f"{m['size_gzip_bytes'] / MIB:.2f} | {_num(m.get('sparsity'), '.3f')} | {_pct(mse, study_base)} | "
-                   f"{_pct(m.get('mse'), base_mse)} | {_num(m.get('mse'), '.6f')} |")
+        out.append(f"| {label} | {cell} | {_num(size, '.2f')} | {m.size.bytes / MIB:.2f} | "
+                   f"{m.size.gzip_bytes / MIB:.2f} | {_num(m.figure('sparsity'), '.3f')} | {_pct(mse, study_base)} | "
+                   f"{_pct(m.task.mse, base_mse)} | {_num(m.task.mse, '.6f')} |")
     return out + [""]
 
 

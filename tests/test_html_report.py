@@ -15,7 +15,8 @@ from test_report import MIB, _metrics, _record
 
 from bench_matrix.cell import Cell
 from bench_matrix.report import write_report
-from bench_matrix.report.columns import NO_REASON, by_reason, model_columns, skip_reason
+from bench_matrix.report.columns import model_columns
+from bench_matrix.report.text import NO_REASON, by_reason, skip_reason
 from bench_matrix.report.html import page, write_html
 from bench_matrix.report.html_parts import sort_value
 from bench_matrix.report.markdown import model_page, page_name, write_pages

@@ -105,7 +105,7 @@ def test_a_store_of_the_previous_release_is_migrated_with_nothing_lost(tmp_path)
     for readonly in (True, False):  # read-only: migrated in memory, the file left as it was
         store = ResultStore(path, readonly=readonly)
         records = store.records()
-        assert {r.cell.key: (r.status, r.metrics, r.env) for r in records} == {
+        assert {r.cell.key: (r.status, r.metrics.to_json(), r.env) for r in records} == {
             key: (status, json.loads(metrics), json.loads(env))
             for key, (status, metrics, env) in old.items()}
         assert {r.cell.key: store.samples_of(r.id).get("latency_ms") for r in records if r.status == "ok"} \

@@ -1,4 +1,4 @@
-"""Number formatting, the results-table columns and the text lines shared by the terminal and Markdown reports."""
+"""Number formatting and the results-table columns shared by the terminal, Markdown and HTML reports."""
 
 from __future__ import annotations
 
@@ -11,13 +11,11 @@ from bench_matrix.measure.metrics import DIRECTIONS, SNR_LIMIT_DB
 from bench_matrix.measurement import Measurement
 from bench_matrix.report.summary import (
     ModelSummary,
-    Report,
     Row,
     disturbed_phases,
     figure,
     metric,
     number,
-    p50,
     unsteady_phases,
 )
 from bench_matrix.store import CellRecord
@@ -149,7 +147,7 @@ TRAILING: tuple[Column, ...] = (
 )
 
 
-def _percent(value: float | None) -> str:
+def percent(value: float | None) -> str:
     return DASH if value is None else f"{value * 100:.2f}"
 
 
@@ -193,13 +191,13 @@ ACCURACY_COLUMNS: dict[str, tuple[Column, ...]] = {
         MAX_DIFF),
     "classification": (
         _accuracy("Top-1\n%", "top1",
-                  "share of test samples whose highest logit is their labelled class, in %", _percent),
+                  "share of test samples whose highest logit is their labelled class, in %", percent),
         Column("ΔTop-1\npp", "cell top-1 minus baseline top-1, in percentage points (negative = less "
                "accurate than the baseline).", lambda r: _points(r.accuracy_delta), ACCURACY),
         _accuracy("Top-5\n%", "top5", "share of test samples whose labelled class is among the k highest "
-                  "logits, k = min(5, classes), in %", _percent),
+                  "logits, k = min(5, classes), in %", percent),
         _accuracy("Agreement\n%", "top1_agreement", "share of test samples whose highest logit is the class "
-                  "the fp32 baseline's highest logit picks, in %", _percent),
+                  "the fp32 baseline's highest logit picks, in %", percent),
         MAX_DIFF),
     "none": (
         MAX_DIFF,
@@ -226,31 +224,6 @@ def hosts(model: ModelSummary) -> tuple[str, ...]:
     return tuple(sorted({r.host or "unknown" for r in records}))
 
 
-NO_REASON = "(no reason stored)"
-
-
-@dataclass(frozen=True)
-class ReasonGroup:
-    """Cells that share one reason (a skip's full text, or a failure's headline), in cell-key order."""
-
-    reason: str
-    records: tuple[CellRecord, ...]
-
-
-def by_reason(records: Iterable[CellRecord], reason_of: Callable[[CellRecord], str]) -> list[ReasonGroup]:
-    """One group per distinct `reason_of(record)` ("" counts as NO_REASON), largest first, then by reason."""
-    groups: dict[str, list[CellRecord]] = {}
-    for record in sorted(records, key=lambda r: (r.cell.key, r.host or "")):
-        groups.setdefault(reason_of(record).strip() or NO_REASON, []).append(record)
-    ordered = sorted(groups.items(), key=lambda item: (-len(item[1]), item[0]))
-    return [ReasonGroup(reason, tuple(found)) for reason, found in ordered]
-
-
-def skip_reason(record: CellRecord) -> str:
-    """A skipped cell's full reason, blank lines and surrounding spaces dropped."""
-    return "\n".join(line.strip() for line in (record.reason or "").splitlines() if line.strip())
-
-
 def cell_names(model: ModelSummary, records: Iterable[CellRecord]) -> list[str]:
     """The cells' labels, each with "on HOST" when the model's cells come from more than one host."""
     several = len(hosts(model)) > 1
@@ -269,136 +242,3 @@ def shown(columns: Iterable[Column], rows: Iterable[Row]) -> list[Column]:
     """The columns worth a place in a table of these rows: optional ones only where some row has a value."""
     rows = list(rows)
     return [c for c in columns if not c.optional or any(c.render(r) != DASH for r in rows)]
-
-
-def caption(model: ModelSummary) -> str:
-    """What the results table shows and how its rows are ordered."""
-    batches = ", ".join(map(str, model.batch_sizes)) or DASH
-    threads = ", ".join(map(str, model.threads)) or DASH
-    return (f"Rows are the ok cells, baseline first, then fastest p50 first. Latency at batch 1; "
-            f"throughput at batch size {batches}; {threads} thread(s). "
-            "Speed-up = baseline p50 ÷ cell p50 (>1× = faster); "
-            "size ratio = baseline size ÷ cell size (>1× = smaller); "
-            "↑ = higher is better, ↓ = lower is better.")
-
-
-def baseline_note(model: ModelSummary) -> str | None:
-    """Why the comparisons are missing when the baseline cell did not produce a result, else None."""
-    if model.baseline is not None and model.baseline.status == "ok":
-        return None
-    delta = DELTA_NAMES.get(model.task, "the fidelity figures")
-    missing = f"speed-up, size ratio and {delta} are not available"
-    if not model.baseline_key:
-        return f"No baseline is recorded for this model (its preparation never finished): {missing}."
-    state = "is not in the store" if model.baseline is None else model.baseline.status
-    return f"Baseline cell {model.baseline_key} {state}: {missing}."
-
-
-def model_line(model: ModelSummary, code: Callable[[str], str]) -> str:
-    """Framework, source, parameters and training of the model; `code` marks literal text (paths, keys)."""
-    info = model.info
-    parts = [f"framework {model.framework}"]
-    if info.get("source"):
-        parts.append(f"source {code(str(info['source']))}")
-    params = number(info.get("params"))
-    if params is not None:
-        parts.append(f"{int(params):,} parameters")
-    training = info.get("training") if isinstance(info.get("training"), dict) else None
-    if training:
-        epochs, train_s = training.get("epochs"), number(training.get("train_s"))
-        parts.append(f"trained {epochs if epochs is not None else DASH} epochs in {sig(train_s, 3)} s")
-    elif "training" in info:
-        parts.append("not trained by bench-matrix")
-    parts.append(f"baseline {code(model.baseline_key)}")
-    return " · ".join(parts)
-
-
-def accuracy_line(model: ModelSummary) -> str:
-    """How good the baseline is on its own, by the model's task, so the reader can tell whether it learned."""
-    if model.task == "classification":
-        return top1_line(model)
-    if model.task == "regression":
-        return mse_line(model)
-    return "No labels: fidelity against the fp32 baseline only."
-
-
-def mse_line(model: ModelSummary) -> str:
-    """The baseline's test MSE beside the mean predictor's, so the reader can tell whether the model learned."""
-    base = _ok_baseline(model)
-    test = number(model.info.get("test_mse"))
-    test = metric(base, "mse") if test is None and base is not None else test
-    mean = number(model.info.get("mean_predictor_mse"))
-    ratio = f"; ratio {sig(test / mean, 3)} (below 1 = better than predicting the training mean)" \
-        if test is not None and mean else ""
-    on = _on_samples(model)
-    return f"Baseline test MSE {sig(test, 4)} vs mean-predictor MSE {sig(mean, 4)}{ratio}{on}."
-
-
-def top1_line(model: ModelSummary) -> str:
-    """The baseline's test top-1 beside always predicting the most common training class."""
-    top1, majority = _baseline_top1(model), number(model.info.get("majority_top1"))
-    return (f"Baseline test top-1 {_percent(top1)} % vs majority-class top-1 {_percent(majority)} % (always "
-            f"predicting the most common training class; higher is better){_on_samples(model)}.")
-
-
-def _baseline_top1(model: ModelSummary) -> float | None:
-    """The fp32 model's test top-1 as its preparation measured it, else as its baseline cell did."""
-    prepared = model.info.get("test_metrics")
-    top1 = number(prepared.get("top1")) if isinstance(prepared, dict) else None
-    base = _ok_baseline(model)
-    return metric(base, "top1") if top1 is None and base is not None else top1
-
-
-def _ok_baseline(model: ModelSummary) -> CellRecord | None:
-    return model.baseline if model.baseline is not None and model.baseline.status == "ok" else None
-
-
-def _on_samples(model: ModelSummary) -> str:
-    samples = number(model.info.get("test_samples"))
-    return f" on {int(samples):,} test samples" if samples is not None else ""
-
-
-def headline_text(model: ModelSummary) -> str:
-    """The model's accuracy in one short cell of the overview table (see HEADLINE_NOTE)."""
-    if model.task == "regression":
-        test, mean = number(model.info.get("test_mse")), number(model.info.get("mean_predictor_mse"))
-        return f"MSE ÷ mean predictor {sig(test / mean, 3)}" if test is not None and mean else DASH
-    if model.task == "classification":
-        top1, majority = _baseline_top1(model), number(model.info.get("majority_top1"))
-        return f"top-1 {_percent(top1)} % (majority {_percent(majority)} %)" if top1 is not None else DASH
-    cosines = [c for c in (metric(r.record, "cosine_similarity") for r in model.rows) if c is not None]
-    return f"lowest cosine {fixed(min(cosines), 6)}" if cosines else DASH
-
-
-HEADLINE_NOTE = ("Accuracy: for regression, the baseline's test MSE ÷ that of always predicting the "
-                 "training mean (below 1 = the model learned something); for classification, the baseline's "
-                 "test top-1 beside always predicting the most common training class (higher is better); "
-                 "without labels, the lowest cosine similarity of any cell's outputs to the fp32 baseline's "
-                 "(1 = identical).")
-
-
-def run_line(report: Report) -> str:
-    """The run shown (or the newest of the store) and what the report holds."""
-    held = report.counts
-    stored = (f"Shown: {sum(held.values())} cells, {held['ok']} ok, {held['skipped']} skipped, "
-              f"{held['failed']} failed.")
-    run = report.run
-    if not run:
-        return stored
-    counts = run.get("counts") or {}
-    ran = ", ".join(f"{counts.get(s, 0)} {s}" for s in ("ok", "skipped", "failed")) if counts else "counts not stored"
-    wall = number(run.get("wall_s"))
-    name = f"Run {run.get('id', DASH)}" + (f" ({run['label']})" if run.get("label") else "")
-    ended = run.get("finished_at") or "did not finish"
-    stopped = "" if run.get("completed", True) else " (interrupted)"
-    return (f"{name} of {run.get('runs', 1)} in the store: matrix {run.get('matrix') or DASH} on "
-            f"{run.get('host') or DASH}, {run.get('started_at') or DASH} → {ended}{stopped} "
-            f"({sig(wall, 3)} s): {ran}. {stored}")
-
-
-def best_text(model: ModelSummary) -> tuple[str, str, str]:
-    """(method, p50 ms, speed-up) of the model's fastest ok cell, dashes when there is none."""
-    best = model.best
-    if best is None:
-        return DASH, DASH, DASH
-    return best.record.cell.label, sig(p50(best.record), 3), times(best.speedup)

@@ -6,8 +6,8 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from bench_matrix.report.columns import (
-    DIFFERENT_ENVIRONMENTS,
+from bench_matrix.report.columns import DIFFERENT_ENVIRONMENTS, cell_names, model_columns, shown
+from bench_matrix.report.text import (
     HEADLINE_NOTE,
     NO_REASON,
     accuracy_line,
@@ -15,12 +15,9 @@ from bench_matrix.report.columns import (
     best_text,
     by_reason,
     caption,
-    cell_names,
     headline_text,
-    model_columns,
     model_line,
     run_line,
-    shown,
     skip_reason,
 )
 from bench_matrix.report.html_parts import SCRIPT, STYLE, Html, esc, figure, table

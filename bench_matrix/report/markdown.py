@@ -10,22 +10,17 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from urllib.parse import quote
 
-from bench_matrix.report.columns import (
-    DASH,
-    DIFFERENT_ENVIRONMENTS,
+from bench_matrix.report.columns import DASH, DIFFERENT_ENVIRONMENTS, Column, cell_names, model_columns, shown
+from bench_matrix.report.text import (
     HEADLINE_NOTE,
-    Column,
     accuracy_line,
     baseline_note,
     best_text,
     by_reason,
     caption,
-    cell_names,
     headline_text,
-    model_columns,
     model_line,
     run_line,
-    shown,
     skip_reason,
 )
 from bench_matrix.report.plots import Plot

@@ -97,7 +97,7 @@ def number(value: Any) -> float | None:
 def metric(record: CellRecord, key: str) -> float | None:
     """A numeric metric by its record key (a task metric, a plugin's NAME.FIGURE), or None when absent or
     malformed."""
-    return number(record.metrics.get(key))
+    return number(record.metrics.figure(key))
 
 
 def figure(record: CellRecord, read: Callable[[Measurement], Any]) -> float | None:

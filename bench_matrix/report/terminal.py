@@ -15,16 +15,18 @@ from bench_matrix.report.columns import (
     SPEED,
     THROUGHPUT,
     Column,
+    cell_names,
+    model_columns,
+    shown,
+)
+from bench_matrix.report.text import (
     accuracy_line,
     baseline_note,
     best_text,
     by_reason,
     caption,
-    cell_names,
-    model_columns,
     model_line,
     run_line,
-    shown,
     skip_reason,
 )
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline

@@ -78,6 +78,6 @@ class Scenario:
         return []
 
 
-def fields(name: str, metrics: dict[str, Any]) -> dict[str, Any]:
-    """The record fields of scenario `name`."""
-    return {k: v for k, v in metrics.items() if k == name or k.startswith(f"{name}_")}
+def fields(name: str, others: dict[str, Any]) -> dict[str, Any]:
+    """The record fields of scenario `name` among a measurement's `others`."""
+    return {k: v for k, v in others.items() if k == name or k.startswith(f"{name}_")}
