@@ -46,7 +46,6 @@ class Planned:
 
     name: ClassVar[str]  # the scenario's; its record fields are `name` or start with `name_`
     function: ClassVar[str]
-    repeat: ClassVar[bool] = False  # run again by later passes; else the record keeps the first pass's fields
 
     def fingerprint(self) -> dict[str, Any]:
         """What the scenario's fields depend on beyond the cell's own fingerprint."""

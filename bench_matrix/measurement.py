@@ -77,10 +77,38 @@ class Interference(Figures):
 
 @dataclass(frozen=True)
 class Throughput(Figures):
-    KEYS: ClassVar[dict[str, str]] = {"sps": "throughput_sps", "batches": "throughput_batches"}
+    KEYS: ClassVar[dict[str, str]] = {"sps": "throughput_sps", "batches": "throughput_batches",
+                                      "ci": "throughput_ci"}
     sps: float | None = None
     batches: int | None = None
     batch_size: int | None = None
+    ci: tuple[float, ...] | None = None  # 95 % interval of the rate, from the rounds
+
+
+@dataclass(frozen=True)
+class Speedup(Figures):
+    """Baseline time ÷ cell time, paired by round (measure/rounds.py:speedup), with its 95 % interval."""
+
+    OPEN: ClassVar[bool] = True
+
+    value: float | None = None
+    ci: tuple[float, ...] | None = None
+    ci_half: float | None = None  # the interval's larger side relative to the value (0.02 = ±2 %)
+    rounds: int | None = None
+
+
+@dataclass(frozen=True)
+class RoundsFacts(Figures):
+    """How the cell's rounds went: kept latency rounds, why they stopped, the target, the width reached and
+    the window length."""
+
+    OPEN: ClassVar[bool] = True
+
+    rounds: int | None = None
+    stop: str | None = None
+    target: float | None = None
+    reached: float | None = None
+    window_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -154,7 +182,8 @@ class Setup(Figures):
 
 
 _NESTED = {"latency_ms": ("latency", LatencyStats), "latency_ms_e2e": ("latency_e2e", LatencyStats),
-           "interference": ("interference", Interference)}
+           "interference": ("interference", Interference), "speedup": ("speedup", Speedup),
+           "rounds": ("rounds", RoundsFacts)}
 _FLAT = {"throughput": Throughput, "size": Size, "memory": Memory, "task": TaskMetrics, "passes": Passes,
          "setup": Setup}
 
@@ -167,6 +196,8 @@ class Measurement:
     latency: LatencyStats | None = None
     latency_e2e: LatencyStats | None = None
     interference: Interference | None = None
+    speedup: Speedup | None = None  # absent for the baseline, and for records from before the rounds
+    rounds: RoundsFacts | None = None
     throughput: Throughput = Throughput()
     size: Size = Size()
     memory: Memory = Memory()

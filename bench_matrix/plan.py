@@ -181,7 +181,7 @@ class Fingerprints:
                        "options": m.backend_options.get(cell.backend, {}),
                        "strategy": m.strategies[cell.strategy].to_dict(),
                        "settings": {k: v for k, v in m.settings.to_dict().items()
-                                    if k not in ("timeout_s", "passes")},  # neither changes what is measured
+                                    if k != "timeout_s"},  # it does not change what is measured
                        "metrics": list(m.metrics), "version": __version__,
                        **{s.name: s.fingerprint() for s in planned.scenarios}})
 

@@ -31,7 +31,7 @@ def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, res
     filters.check([p.cell for p in plan.cells])
     results = results or ws.results
     store = ResultStore(results, readonly=True) if results.is_file() else None
-    here, passes = {environment.host_name()}, plan.matrix.settings.passes
+    here = {environment.host_name()}
     cells = [p for p in plan.cells if filters.keep(p.cell)]
     table = Table(title=f"cells of {plan.matrix.path}")
     scenarios = [s for s in selectable() if s.name in plan.matrix.scenarios]
@@ -40,7 +40,7 @@ def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, res
         table.add_column(column, overflow="fold")
     counts = {"run": 0, "stored": 0, "skip": 0, "invalid": 0}
     for p in sorted((p for p in cells if p.state != "invalid"), key=lambda p: (p.state, p.cell)):
-        stored = p.state == "run" and store is not None and store.is_done(p.cell, p.fingerprint, here, passes)
+        stored = p.state == "run" and store is not None and store.is_done(p.cell, p.fingerprint, here)
         state = "stored" if stored else p.state
         counts[state] += 1
         c = p.cell

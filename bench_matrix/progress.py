@@ -80,6 +80,25 @@ def _disturbed(interference: Interference | None) -> str:
     return f"  [yellow]~ disturbed{f': {escape(reason)}' if reason else ''}[/]"
 
 
+def _within(metrics: Measurement) -> str:
+    """The p50 interval's larger side, relative: ' ±1.2 %'."""
+    latency = metrics.latency
+    interval = latency.p50_ci if latency is not None else None
+    if not interval or not latency.p50:
+        return ""
+    return f" ±{max(interval[1] - latency.p50, latency.p50 - interval[0]) / latency.p50:.1%}"
+
+
+def _speedup(metrics: Measurement) -> str:
+    """The paired speed-up against the baseline with its interval: '  3.1× ±2.0 %'."""
+    found = metrics.speedup
+    if found is None or found.value is None:
+        return ""
+    if found.ci_half is None:
+        return f"  {found.value:.3g}×"
+    return f"  {found.value:.3g}× ±{found.ci_half:.1%}"
+
+
 def _calibration(metrics: Measurement) -> str:
     """A warning for a cell calibrated on fewer samples than its strategy asked for."""
     calibration = metrics.others.get("calibration") or {}
@@ -95,11 +114,9 @@ def describe(record: CellRecord) -> str:
     name = f"{cell.model} · {cell.label}"
     if record.status == "ok":
         m = record.metrics
-        passes = m.passes.p50 or ()
-        per_pass = f"  (p50 per pass: {', '.join(f'{p:.3g}' for p in passes)} ms)" if len(passes) > 1 else ""
-        return (f"[green]✓[/] {name}  p50 {m.latency.p50:.3g} ms  p99 {m.latency.p99:.3g} ms"
-                f"  {m.throughput.sps:.0f} samples/s  {_accuracy(m.task)}  {m.size.bytes / 2**20:.2f} MiB"
-                f"{per_pass}{_disturbed(m.interference)}{_calibration(m)}")
+        return (f"[green]✓[/] {name}  p50 {m.latency.p50:.3g} ms{_within(m)}  p99 {m.latency.p99:.3g} ms"
+                f"  {m.throughput.sps:.0f} samples/s{_speedup(m)}  {_accuracy(m.task)}"
+                f"  {m.size.bytes / 2**20:.2f} MiB{_disturbed(m.interference)}{_calibration(m)}")
     lines = (record.reason or "").strip().splitlines()
     mark = "[yellow]–[/] skipped" if record.status == "skipped" else "[red]✗[/] failed"
     return f"{mark} {escape(name)}: {escape(lines[0] if lines else '')}"

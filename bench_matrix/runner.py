@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -13,13 +13,12 @@ from typing import Any
 from bench_matrix.cell import CellPlan
 from bench_matrix.errors import StepError, UserError
 from bench_matrix.executors.base import Ended, Executor, Limits, Work
-from bench_matrix.jobs import ConvertJob, DatasetJob, FinetuneJob, MeasureJob, ModelJob
-from bench_matrix.jobs.results import Converted, PreparedData, PreparedModel
+from bench_matrix.jobs import ConvertJob, DatasetJob, FinetuneJob, MeasureJob, ModelJob, RoundsJob
+from bench_matrix.jobs.results import PreparedData, PreparedModel
 from bench_matrix.measure import env as environment
 from bench_matrix.measurement import Measurement
 from bench_matrix.plan import ModelPlan, Plan
 from bench_matrix.progress import RunProgress
-from bench_matrix.scenarios.base import fields
 from bench_matrix.selection import Filters, Shard
 from bench_matrix.sources import SourceModel
 from bench_matrix.store import CellRecord, ResultStore
@@ -38,15 +37,22 @@ class _Ready:
 
 
 @dataclass(frozen=True)
-class _Again:
-    """An ok cell that later passes measure again: its record, its measurement job (with the scenarios that
-    repeat), the scenarios whose first-pass fields the record keeps, and where it ran."""
+class _Measuring:
+    """A converted cell waiting for its model's rounds: its plan, measure job, start and machine."""
 
-    record: CellRecord
+    plan: CellPlan
     job: MeasureJob
-    kept: tuple[str, ...]
-    limits: Limits
+    started: str
     where: Any
+
+
+@dataclass
+class _Converting:
+    """A model's cells while they convert: the cells still converting, and the converted ones."""
+
+    ready: _Ready
+    pending: set[str]
+    measuring: list[_Measuring] = field(default_factory=list)
 
 
 class Runner:
@@ -62,7 +68,7 @@ class Runner:
         self.progress: RunProgress
         self._handlers: dict[Work, Callable[[Ended], None]] = {}
         self._shared: dict[Any, list[Callable[[Ended], None]] | Ended] = {}  # waiting for it, or how it ended
-        self._again: dict[Any, _Again] = {}
+        self._converting: dict[str, _Converting] = {}
 
     def run(self, filters: Filters, force: bool) -> dict[str, int]:
         filters.check([p.cell for p in self.plan.cells])
@@ -91,10 +97,10 @@ class Runner:
         return {"shard": f"{self.shard.index}/{self.shard.count}"} if self.shard.count > 1 else {}
 
     def _done(self, p: CellPlan) -> bool:
-        return self.store.is_done(p.cell, p.fingerprint, self.executor.hosts(), self.matrix.settings.passes)
+        return self.store.is_done(p.cell, p.fingerprint, self.executor.hosts())
 
     def _run_cells(self, chosen: list[CellPlan], todo: list[CellPlan]) -> None:
-        with RunProgress(self.console, len(todo) * self.matrix.settings.passes) as self.progress:
+        with RunProgress(self.console, len(todo)) as self.progress:
             skipped = [p for p in chosen if p.state == "skip" and not self._done(p)]  # keep a GPU box's ok
             records = [self._record(p, "skipped", p.reason, _now()) for p in skipped]
             for p, record in zip(skipped, records):
@@ -107,8 +113,6 @@ class Runner:
                 if cells:
                     self._prepare_data(self.plan.models[model.name], cells)
             self._drain(wait=True)
-            for number in range(2, self.matrix.settings.passes + 1):
-                self._pass(number)
 
     def _submit(self, work: Work, then: Callable[[Ended], None]) -> None:
         """Hand work to the executor; `then` takes how it ended (at once when the executor ran it already)."""
@@ -179,12 +183,12 @@ class Runner:
             return
         ready = _Ready(model, data, ended.result)
         self.store.put_fact(f"model:{model.spec.name}", "info", ready.prepared.info)
+        self._converting[model.spec.name] = _Converting(ready, {p.cell.key for p in cells})
         for p in cells:
             self._start_cell(p, ready)
 
     def _start_cell(self, p: CellPlan, ready: _Ready) -> None:
-        """Convert and measure the cell; fine-tuned first (once per model and strategy) when its strategy says
-        so."""
+        """Convert the cell; fine-tuned first (once per model and strategy) when its strategy says so."""
         started = _now()
         self.progress.step(f"{ready.model.spec.name} · {p.cell.label}")
         if not p.training:
@@ -198,79 +202,79 @@ class Runner:
     def _tuned(self, p: CellPlan, ready: _Ready, started: str, tuned: Ended) -> None:
         if not tuned.ok:
             self._finished(self._record(p, "failed", f"finetune: {tuned.error}", started, env=tuned.env))
+            self._settled(p, None)
             return
         self._convert(p, ready, tuned.result.source, tuned.result.facts, started)
 
     def _convert(self, p: CellPlan, ready: _Ready, source: SourceModel, facts: dict | None,
                  started: str) -> None:
-        """Convert the cell's source, then measure the artifact where it was made."""
+        """Convert the cell's source; it is measured with the model's other cells once all are converted."""
         model, settings = ready.model, self.matrix.settings
         job = ConvertJob(self.ws, p.cell, p.step, source, ready.data, model.spec.layout, settings,
                          self.matrix.backend_options.get(p.cell.backend, {}))
+        self._submit(Work(job, self._limits(p)),
+                     lambda ended: self._converted(p, ready, source, facts, started, ended))
 
-        def measure(converted: Converted) -> MeasureJob:
-            return MeasureJob(self.ws, p.cell, model.task, converted, source, ready.data, model.spec.layout,
-                              settings, ready.prepared.reference, self.matrix.metrics, facts, p.scenarios)
+    def _converted(self, p: CellPlan, ready: _Ready, source: SourceModel, facts: dict | None, started: str,
+                   ended: Ended) -> None:
+        if not ended.ok:
+            reason = f"{ended.jobs[-1].name}: {ended.error}"
+            self._finished(self._record(p, "failed", reason, started, env=ended.env))
+            self._settled(p, None)
+            return
+        model, settings = ready.model, self.matrix.settings
+        job = MeasureJob(self.ws, p.cell, model.task, ended.result, source, ready.data, model.spec.layout,
+                         settings, ready.prepared.reference, self.matrix.metrics, facts, p.scenarios)
+        self._settled(p, _Measuring(p, job, started, ended.where))
 
-        self._submit(Work(job, self._limits(p), then=measure),
-                     lambda ended: self._cell_ended(p, started, ended))
+    def _settled(self, p: CellPlan, measuring: _Measuring | None) -> None:
+        """A cell's conversion ended; once all of its model's have, its converted cells are measured together,
+        in rounds, one rounds job per machine holding their artifacts."""
+        converting = self._converting[p.cell.model]
+        converting.pending.discard(p.cell.key)
+        if measuring is not None:
+            converting.measuring.append(measuring)
+        if converting.pending:
+            return
+        by_machine: dict[Any, list[_Measuring]] = {}
+        for m in converting.measuring:
+            by_machine.setdefault(m.where, []).append(m)
+        baseline = converting.ready.model.baseline
+        for where, group in by_machine.items():
+            keys = {m.plan.cell.key for m in group}
+            job = RoundsJob(self.ws, tuple(m.job for m in group),
+                            tuple(self._log(m.plan).name for m in group),
+                            baseline.key if baseline is not None and baseline.key in keys else None)
+            limits = Limits(self._log(group[0].plan), self.matrix.settings.timeout_s,
+                            self.matrix.settings.threads)
+            self.progress.step(f"{p.cell.model} · measuring {len(group)} cells in rounds")
+            self._submit(Work(job, limits, on=where), lambda ended, group=group: self._measured(group, ended))
+
+    def _measured(self, group: list[_Measuring], ended: Ended) -> None:
+        results = {c.key: c for c in ended.result.cells} if ended.ok else {}
+        for m in group:
+            artifact = str(m.job.converted.model)
+            found = results.get(m.plan.cell.key)
+            if found is None or found.measured is None:
+                why = found.error if found is not None else ended.error
+                self._finished(self._record(m.plan, "failed", f"measure: {why}", m.started, env=ended.env,
+                                            artifact=artifact))
+                continue
+            measured = found.measured
+            self._finished(self._record(m.plan, "ok", None, m.started, metrics=measured.metrics,
+                                        env=measured.env, artifact=artifact), measured.samples)
 
     def _limits(self, p: CellPlan) -> Limits:
-        """A cell job's log, time limit (conversion and measurement together) and threads."""
+        """A cell job's log, time limit and threads."""
         return Limits(self._log(p), self.matrix.settings.timeout_s, self.matrix.settings.threads)
 
     def _log(self, p: CellPlan) -> Path:
         return p.log or self.ws.cell_log(p.cell.key)
 
-    def _cell_ended(self, p: CellPlan, started: str, ended: Ended) -> None:
-        artifact = str(ended.results[0].model) if ended.results else None
-        if not ended.ok:
-            reason = f"{ended.jobs[-1].name}: {ended.error}"
-            self._finished(self._record(p, "failed", reason, started, env=ended.env, artifact=artifact))
-            return
-        measured = ended.result
-        metrics = measured.metrics.with_fields(latency_passes_p50=[measured.metrics.latency.p50])
-        record = self._record(p, "ok", None, started, metrics=metrics, env=measured.env, artifact=artifact)
-        self._finished(record, measured.samples)
-        job = ended.jobs[-1]
-        again = replace(job, scenarios=tuple(s for s in job.scenarios if s.repeat))
-        kept = tuple(s.name for s in job.scenarios if not s.repeat)
-        self._again[p.cell] = _Again(record, again, kept, self._limits(p), ended.where)
-
     def _finished(self, record: CellRecord, samples: dict[str, bytes] | None = None) -> None:
         self.store.put(record, samples)
         self.progress.finished(record)
         self.counts[record.status] += 1
-
-    def _pass(self, number: int) -> None:
-        """Measure every ok cell once more (fresh process, same artifact, same machine); keep the pass with
-        the lowest p50."""
-        for cell, again in self._again.items():
-            self.progress.step(f"pass {number}/{self.matrix.settings.passes} · {cell.model} · {cell.label}")
-            self._measure_again(again)
-
-    def _measure_again(self, again: _Again) -> None:
-        work = Work(again.job, again.limits, on=again.where)  # on the machine holding the artifact
-        self._submit(work, lambda ended: self._passed(again, ended))
-        self._drain(wait=True)
-
-    def _passed(self, again: _Again, ended: Ended) -> None:
-        record = again.record
-        samples = None
-        if ended.ok:
-            new = ended.result.metrics
-            passes = [*record.metrics.passes.p50, new.latency.p50]
-            record.metrics = record.metrics.with_fields(latency_passes_p50=passes)
-            if _disturbance(new) < _disturbance(record.metrics):
-                once = {k: v for name in again.kept for k, v in fields(name, record.metrics.others).items()}
-                record.metrics = new.with_fields(**once, latency_passes_p50=passes)
-                record.env, samples = ended.result.env, ended.result.samples
-        else:
-            failed = (record.metrics.passes.failed or 0) + 1
-            record.metrics = record.metrics.with_fields(latency_passes_failed=failed)
-        record.finished_at = _now()
-        self.store.put(record, samples)
-        self.progress.finished(record)
 
     def _skipped_before(self, p: CellPlan) -> bool:
         """Whether this host's newest record of a cell to skip already skips it for the same reason."""
@@ -285,11 +289,6 @@ class Runner:
                           artifact_path=artifact, env=env or environment.capture(), started_at=started,
                           finished_at=_now(), fingerprint=p.fingerprint, matrix=str(self.matrix.path),
                           run_id=self.run_id)
-
-
-def _disturbance(metrics: Measurement) -> tuple[bool, float]:
-    """How a pass ranks: unflagged before flagged, then the lower p50 (interference only adds time)."""
-    return bool(metrics.interference and metrics.interference.flagged), metrics.latency.p50
 
 
 def _now() -> str:

@@ -226,12 +226,10 @@ class ResultStore:
         found = [r for host in sorted(hosts) if (r := self.latest(cell, host))]
         return max(found, key=lambda r: (r.finished_at or r.started_at or "", r.id or 0), default=None)
 
-    def is_done(self, cell: Cell, fingerprint: str, hosts: set[str], passes: int) -> bool:
-        """Whether the newest record of the cell on `hosts` is an ok one of this fingerprint, every pass
-        made."""
+    def is_done(self, cell: Cell, fingerprint: str, hosts: set[str]) -> bool:
+        """Whether the newest record of the cell on `hosts` is an ok one of this fingerprint."""
         record = self.latest_on(cell, hosts)
-        return (record is not None and record.status == "ok" and record.fingerprint == fingerprint
-                and record.metrics.passes.made >= passes)
+        return record is not None and record.status == "ok" and record.fingerprint == fingerprint
 
     def records(self, run: int | None = None) -> list[CellRecord]:
         """The records of one run, or (by default) the newest record of every cell on every host."""

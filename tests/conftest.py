@@ -22,10 +22,9 @@ sys.path.insert(0, str(TESTS))
 import tiny_models  # noqa: E402
 
 TINY_X = tiny_models.images(16, 2)  # the inputs the `reference` outputs belong to
-# max_time_s caps a noisy cell's timed loop (the default early stop could time one for 16 s); tests that judge
-# timing set their own settings
-FAST_SETTINGS = ("settings: {min_iterations: 5, min_time_s: 0.02, warmup_iterations: 2, warmup_s: 0.0, "
-                 "throughput_time_s: 0.02, batch_size: 8, timeout_s: 120, max_time_s: 2}\n")
+# short windows and budgets: tests that judge timing set their own settings
+FAST_SETTINGS = ("settings: {window_s: 0.01, min_rounds: 2, timing_budget_s: 0.05, warmup_iterations: 2, "
+                 "warmup_s: 0.0, batch_size: 8, timeout_s: 120}\n")
 GPU_NOT_RUN = pytest.StashKey[str]()  # the line saying which gpu-marked tests were deselected, and why
 
 

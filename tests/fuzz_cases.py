@@ -77,8 +77,8 @@ def write_project(project: Path) -> Path:
 BASE = {"models": [{"name": "tiny", "framework": "onnx", "file": "tiny.onnx"}],
         "dataset": {"npz": "data.npz", "split": {"train": 0.5, "calibration": 0.25, "test": 0.25}},
         "axes": {"backend": ["onnxruntime"], "strategy": ["none"], "precision": ["fp32"], "target": ["cpu"]},
-        "settings": {"min_iterations": 5, "min_time_s": 0.02, "warmup_iterations": 2, "warmup_s": 0.0,
-                     "throughput_time_s": 0.02, "batch_size": 8, "timeout_s": 120}}
+        "settings": {"window_s": 0.01, "min_rounds": 2, "timing_budget_s": 0.05, "warmup_iterations": 2,
+                     "warmup_s": 0.0, "batch_size": 8, "timeout_s": 120}}
 
 
 def render(changes: tuple[tuple[tuple, Any], ...] = (), raw: str = "", at: tuple = ()) -> str:
@@ -135,8 +135,8 @@ def context(dotted: str) -> tuple:
     return next((c for prefix, c in CONTEXT.items() if dotted.startswith(prefix)), ())
 
 
-INTEGERS = ["settings.warmup_iterations", "settings.min_iterations", "settings.batch_size",
-            "settings.threads", "settings.passes", "settings.seed", "settings.eval_samples", "dataset.seed",
+INTEGERS = ["settings.warmup_iterations", "settings.min_rounds", "settings.batch_size",
+            "settings.threads", "settings.seed", "settings.eval_samples", "dataset.seed",
             "dataset.samples", "dataset.circuits", "dataset.preprocess.resize.0",
             "dataset.preprocess.crop.top", "models.0.training.epochs", "models.0.training.batch_size",
             "strategies.s.calibration_samples", "strategies.s.batch_size", "strategies.s.min_weights",
@@ -145,12 +145,13 @@ INTEGERS = ["settings.warmup_iterations", "settings.min_iterations", "settings.b
 # where a huge count means "all" or "none"; elsewhere it allocates or loops without end
 HUGE_IS_MEANINGFUL = ["settings.eval_samples", "dataset.preprocess.crop.top", "strategies.s.min_weights",
                       "strategies.s.clusters"]
-DURATIONS = ["settings.warmup_s", "settings.min_time_s", "settings.max_time_s", "settings.throughput_time_s",
-             "settings.timeout_s", "strategies.s.epochs"]
+DURATIONS = ["settings.warmup_s", "settings.window_s", "settings.timing_budget_s", "settings.timeout_s",
+             "strategies.s.epochs"]
 REALS = ["strategies.s.lr", "strategies.s.fraction", "strategies.s.final_sparsity",
          "strategies.s.initial_sparsity", "models.0.training.lr", "dataset.preprocess.scale",
          "dataset.preprocess.mean.0", "dataset.preprocess.std.0", "dataset.labels.offset.0",
-         "dataset.labels.scale.0", "dataset.split.train", "models.0.inputs.0.range.1"]
+         "dataset.labels.scale.0", "dataset.split.train", "models.0.inputs.0.range.1", "settings.ci_target",
+         "settings.memory_share"]
 NOT_FINITE = {"nan": ".nan", "inf": ".inf", "neg_inf": "-.inf"}
 BAD = {  # key -> its bad values
     **{k: {"whole_float": "2.0", "float_1e30": "1.0e+30", **NOT_FINITE, "string": "'8'", "bool": "true",

@@ -128,9 +128,11 @@ def _workers_of(workspace: Path) -> list[int]:
     return found
 
 
-# four ONNX cells through tests/plugin_slow.py with no delay, its gate holding every session after the first:
+# four ONNX models of one cell each (each model is measured on its own, in rounds) through
+# tests/plugin_slow.py with no delay, its gate holding every session after the first:
 # the run is certainly in its second cell, its measuring child waiting, when it is interrupted
-INTERRUPTIBLE = onnx_matrix_text(["tiny", "twin"], ["fp32", "fp16"]).replace("[onnxruntime]", "[slow_ort]")
+INTERRUPTIBLE = onnx_matrix_text(["tiny", "twin", "third", "fourth"], ["fp32"]).replace("[onnxruntime]",
+                                                                                     "[slow_ort]")
 
 
 def _start_gated_run(project: Path) -> tuple[subprocess.Popen, dict[str, str]]:
@@ -212,21 +214,42 @@ def test_user_errors_exit_2_without_traceback(tiny_project):
     assert missing.returncode == 2 and "nope.yaml: file not found" in missing.stderr
 
 
-def test_passes_measure_each_cell_again_and_keep_the_least_disturbed(onnx_project):
-    (onnx_project / "m.yaml").write_text(onnx_matrix_text(["tiny"], ["fp32"]).replace(
-        "timeout_s: 120,", "timeout_s: 120, passes: 3,"))
+def test_a_models_cells_are_timed_in_rounds_with_a_paired_speedup(onnx_project):
+    (onnx_project / "m.yaml").write_text(onnx_matrix_text(["tiny"], ["fp32", "fp16"]).replace(
+        "min_rounds: 2, timing_budget_s: 0.05", "min_rounds: 3, timing_budget_s: 1"))
     run = cli(onnx_project, "run", "m.yaml")
     assert run.returncode == 0, run.stdout + run.stderr
-    assert "p50 per pass:" in run.stdout
-    m = records(onnx_project)["onnxruntime/none/fp32/cpu"]["metrics"]
-    assert len(m["latency_passes_p50"]) == 3 and m["latency_ms"]["p50"] in m["latency_passes_p50"]
-    if m["interference"]["flagged"]:  # only when every pass was flagged is a flagged one kept: the fastest
-        assert m["latency_ms"]["p50"] == min(m["latency_passes_p50"])
+    found = records(onnx_project)
+    base, half = found["onnxruntime/none/fp32/cpu"]["metrics"], found["onnxruntime/none/fp16/cpu"]["metrics"]
+    assert "speedup" not in base and base["rounds"]["rounds"] >= 3  # the baseline is paired against
+    kept = {"latency_ms", "throughput_sps", "throughput_batches", "batch_size", "peak_rss_mb", "size_bytes",
+            "size_gzip_bytes", "files", "params", "convert_s", "artifact_cached", "load_s", "threads", "session",
+            "test_samples", "interference", "timing_window", "cpu_affinity", "outputs_sha256",
+            "max_abs_diff_vs_baseline", "cosine_similarity", "snr_db"}  # the fields before the rounds...
+    assert kept | {"speedup", "rounds", "throughput_ci"} <= set(half)  # ... and the new ones
+    assert not {"latency_attempts", "latency_stability", "latency_passes_p50"} & set(half)  # retired
+    ratio = half["speedup"]
+    assert ratio["rounds"] >= 3 and ratio["ci"][0] <= ratio["value"] <= ratio["ci"][1]
+    assert half["rounds"]["stop"] in ("width", "budget") and half["timing_window"]["rounds"] >= 3
+    low, high = half["latency_ms"]["p50_ci"]
+    assert low <= half["latency_ms"]["p50"] <= high and half["throughput_sps"] > 0
+    assert f"{ratio['value']:.3g}× ±" in run.stdout  # the progress line
     store = ResultStore(onnx_project / "ws" / "results.sqlite", readonly=True)
-    (record,) = [r for r in store.records() if r.cell == Cell("tiny", "onnx", "onnxruntime", "none", "fp32", "cpu")]
+    (record,) = [r for r in store.records()
+                 if r.cell == Cell("tiny", "onnx", "onnxruntime", "none", "fp16", "cpu")]
     kept = store.samples(record)
     store.close()
-    assert len(kept) == m["latency_ms"]["n"]  # the raw samples are the kept pass's
-    assert float(np.median(kept)) == pytest.approx(m["latency_ms"]["p50"], rel=1e-5)
-    again = cli(onnx_project, "run", "m.yaml")
-    assert "1 already stored" in again.stdout  # all passes done: nothing to re-measure
+    assert len(kept) == half["latency_ms"]["n"]  # the raw samples are every kept window's
+    assert float(np.median(kept)) == pytest.approx(half["latency_ms"]["p50"], rel=1e-5)
+    table = cli(onnx_project, "report").stdout
+    assert f"{ratio['value']:.2f}× ±{ratio['ci_half']:.1%}" in table
+
+
+def test_retired_timing_settings_are_refused_with_what_replaced_them(onnx_project):
+    (onnx_project / "m.yaml").write_text(onnx_matrix_text(["tiny"], ["fp32"]).replace(
+        "timeout_s: 120", "timeout_s: 120, passes: 3, min_time_s: 1"))
+    run = cli(onnx_project, "run", "m.yaml")
+    assert run.returncode == 2 and "Traceback" not in run.stderr
+    for key in ("passes", "min_time_s"):
+        assert (f"settings.{key}: retired: timing is interleaved rounds now; set window_s, min_rounds"
+                in run.stderr)

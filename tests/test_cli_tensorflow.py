@@ -16,9 +16,6 @@ from conftest import FAST_SETTINGS, TESTS, cli
 pytestmark = pytest.mark.slow
 
 BACKENDS = ["tensorflow", "keras_predict", "tflite", "tftrt", "onnxruntime"]
-# Keras model.predict's latencies are too noisy for the default early stop (one cell took 16 s of timing):
-# these tests judge conversions and accuracy, not latency, so the timed loops stop at their minimums
-TF_SETTINGS = FAST_SETTINGS.replace("}\n", ", ci_rel_width: 1}\n")
 STRATEGIES = ("strategies:\n  ptq_static: {kind: ptq_static, calibration_samples: 24}\n"
               "  ptq_full_int8: {kind: ptq_static, io: int8, calibration_samples: 24}\n")
 
@@ -58,7 +55,7 @@ def _matrix(model_file: str, backends: list[str], strategies: list[str], precisi
             f"dataset: {{npz: data.npz, split: {{train: 0.5, calibration: 0.25, test: 0.25}}}}\n"
             + STRATEGIES +
             f"axes: {{backend: {backends}, strategy: {strategies}, precision: {precisions}, target: {targets}}}\n"
-            + TF_SETTINGS)
+            + FAST_SETTINGS)
 
 
 def _records(project: Path) -> dict[str, dict]:
@@ -135,7 +132,7 @@ def test_saved_model_directory_and_h5_are_model_files(tmp_path):
         "dataset: {npz: data.npz, split: {train: 0.5, calibration: 0.25, test: 0.25}}\n"
         "axes: {backend: [tensorflow, tflite], strategy: [none], precision: [fp32], target: [cpu]}\n"
         # tflite converts any Keras source alike (from_keras_model); tensorflow copies a SavedModel directory
-        "exclude: [{model: sm, backend: tflite}, {model: h5, backend: tensorflow}]\n" + TF_SETTINGS)
+        "exclude: [{model: sm, backend: tflite}, {model: h5, backend: tensorflow}]\n" + FAST_SETTINGS)
     run = cli(project, "run", "m.yaml", timeout=600)
     assert run.returncode == 0 and "2 ok, 0 skipped, 0 failed" in run.stdout, run.stdout + run.stderr
 

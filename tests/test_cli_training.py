@@ -66,8 +66,8 @@ def test_tensorflow_pruning_clustering_and_qat_in_tflite(tmp_path: Path) -> None
         "axes: {backend: [tflite], strategy: [prune, cluster, qat, prune_dynamic], precision: [fp32, int8], "
         "target: [cpu]}\n"
         "include:\n  - {backend: onnxruntime, strategy: qat, precision: int8, target: cpu}\n"
-        "settings: {min_iterations: 5, min_time_s: 0.02, warmup_iterations: 2, warmup_s: 0.0, "
-        "throughput_time_s: 0.02, batch_size: 8, timeout_s: 300, max_time_s: 2}\n")
+        "settings: {window_s: 0.01, min_rounds: 2, timing_budget_s: 0.05, warmup_iterations: 2, "
+        "warmup_s: 0.0, batch_size: 8, timeout_s: 300}\n")
     run = cli(project, "run", "m.yaml", timeout=900)
     assert run.returncode == 0 and "0 failed" in run.stdout, run.stdout + run.stderr
     found = {key: r for key, r in _records(project).items() if r["status"] == "ok"}

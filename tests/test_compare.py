@@ -306,3 +306,28 @@ def test_throughput_is_tested_on_the_batch_durations_where_stored() -> None:
                     _throughput_side("b", 700.0, np.array([11.0, 7.0, 12.0], np.float32)))
     assert _metric(noisy, "throughput").change == pytest.approx(-0.3)
     assert _metric(noisy, "throughput").verdict == "unchanged"  # three batches each: not significant
+
+
+def _speedup(value: float, half: float) -> dict[str, Any]:
+    return {"value": value, "ci": [value / (1 + half), value * (1 + half)], "ci_half": half, "rounds": 9}
+
+
+def test_p50_is_judged_on_the_paired_speedup_where_both_sides_have_one() -> None:
+    slower_machine = (_samples(1.0, seed=1), _samples(1.3, seed=2))  # the whole machine 30 % slower in run 2
+    held = _pair(*slower_machine, base_metrics={"speedup": _speedup(2.0, 0.02)},
+                 new_metrics={"speedup": _speedup(2.02, 0.02)})
+    p50 = _metric(held, "p50")
+    assert p50.name == "speedup.value" and p50.verdict == "unchanged" and held.regressions == []
+    assert _pair(*slower_machine).regressions  # without the paired figures the drift reads as a regression
+    lost = _pair(_samples(1.0, seed=1), _samples(1.0, seed=2), base_metrics={"speedup": _speedup(2.0, 0.02)},
+                 new_metrics={"speedup": _speedup(1.5, 0.02)})
+    assert _metric(lost, "p50").verdict == "worse" and _metric(lost, "p50").change == pytest.approx(-0.25)
+    vague = _pair(_samples(1.0, seed=1), _samples(1.0, seed=2), base_metrics={"speedup": _speedup(2.0, 0.3)},
+                  new_metrics={"speedup": _speedup(1.5, 0.3)})
+    assert _metric(vague, "p50").verdict == "unchanged"  # 25 % apart, but the intervals overlap
+    one_side = _pair(_samples(1.0, seed=1), _samples(1.3, seed=2),
+                     new_metrics={"speedup": _speedup(2.0, 0.02)})
+    assert _metric(one_side, "p50").name == "latency_ms.p50"  # only one side paired: the raw samples judge
+    console = Console(record=True, width=220)
+    print_comparison(held, console)
+    assert "2.00× → 2.02×" in console.export_text()

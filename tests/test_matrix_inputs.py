@@ -224,12 +224,15 @@ def test_folder_dataset_checks(tmp_path):
 @pytest.mark.parametrize("setting, message", [
     ("threads: 2.0", "settings.threads: expected integer, got float 2.0; write it without a decimal point"),
     ("batch_size: 1.0e+30", "settings.batch_size: expected integer, got float 1e+30"),
-    ("passes: true", "settings.passes: expected integer, got bool True"),
-    ("min_time_s: .nan", "settings.min_time_s: expected a finite number, got float nan"),
+    ("min_rounds: true", "settings.min_rounds: expected integer, got bool True"),
+    ("window_s: .nan", "settings.window_s: expected a finite number, got float nan"),
     ("timeout_s: .inf", "settings.timeout_s: expected a finite number, got float inf"),
     ("warmup_s: -.inf", "settings.warmup_s: expected a finite number, got float -inf"),
     ("timeout_s: 1.0e+30", "settings.timeout_s: must be <= 604800, got 1e+30"),
-    ("min_iterations: 100000000", "settings.min_iterations: must be <= 1000000, got 100000000"),
+    ("warmup_iterations: 100000000", "settings.warmup_iterations: must be <= 1000000, got 100000000"),
+    ("min_rounds: 1", "settings.min_rounds: must be >= 2, got 1"),
+    ("ci_target: 0", "settings.ci_target: must be > 0, got 0"),
+    ("passes: 2", "settings.passes: retired: timing is interleaved rounds now; set window_s, min_rounds"),
     ("seed: -1", "settings.seed: must be >= 0, got -1"),
     ("threads: true", "settings.threads: expected integer, got bool True"),
 ])
@@ -271,9 +274,11 @@ def test_strategy_and_training_numbers_are_strict(tmp_path):
 
 def test_values_at_the_limits_load(tmp_path):
     settings = ("settings: {timeout_s: 604800, threads: 1024, batch_size: 65536, seed: 2147483647, "
-                "max_time_s: 86400, passes: 100}\n")
+                "timing_budget_s: 86400, min_rounds: 1000, window_s: 60, memory_share: 1}\n")
     loaded = load_matrix(matrix(tmp_path, BASE + settings)).settings
-    assert (loaded.timeout_s, loaded.threads, loaded.batch_size, loaded.passes) == (604800, 1024, 65536, 100)
+    assert (loaded.timeout_s, loaded.threads, loaded.batch_size, loaded.min_rounds) == \
+        (604800, 1024, 65536, 1000)
+    assert (loaded.timing_budget_s, loaded.window_s, loaded.memory_share) == (86400, 60, 1)
     assert load_matrix(matrix(tmp_path, BASE)).dataset.circuits == 20  # the documented default
 
 

@@ -24,8 +24,7 @@ backend_options: {npu_rt: {hint: latency, streams: 2}}
 """
 ENTRY_POINTS = ("npu_rt = plugin_npu:NpuBackend\nbad_opts = plugin_npu:BadOptionsBackend\n"
                 "fake_gpu = plugin_npu:FakeGpuBackend\ngone = no_such_module_of_bench_matrix:Backend\n")
-FAST = ("settings: {min_iterations: 5, min_time_s: 0.02, warmup_s: 0.0, throughput_time_s: 0.02, "
-        "batch_size: 4}\n")
+FAST = "settings: {window_s: 0.01, min_rounds: 2, timing_budget_s: 0.05, warmup_s: 0.0, batch_size: 4}\n"
 
 
 def install(root: Path) -> Path:

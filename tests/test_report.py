@@ -235,7 +235,7 @@ def test_unsteady_latency_of_a_record_before_interference_was_measured_is_marked
     page = write_report(path, "md", tmp_path / "md", _console())[1].read_text()
     assert "| 1.00 ~ |" in page and "| 2.00 |" in page
     drifted = "onnxruntime none fp32: latency: chunk medians drifted by 30% (limit 5%)"
-    assert f"> **Unsteady (~):** {drifted}" in page and "> **Disturbed" not in page
+    assert f"> **Wide (~):** {drifted}" in page and "> **Disturbed" not in page
 
 
 WHY = "other processes took 45% of the measuring CPU(s) (limit 10%)"
@@ -271,7 +271,7 @@ def test_a_cell_flagged_for_interference_is_marked_in_every_format(tmp_path: Pat
     reason = f"{WHY} (3 attempts, none clean)"
     assert f"> **Disturbed (~):** onnxruntime none fp32: latency: {reason}" in page
     drifting = f"onnxruntime ptq_dynamic int8: latency: {DRIFT} (3 attempts, none clean)"
-    assert f"> **Unsteady (~):** {drifting}" in page
+    assert f"> **Wide (~):** {drifting}" in page
     assert "| 1.00 ~ | 2.0 | 1.50 ~ | 2.00 ~ | 8000 |" in page  # latency figures marked, throughput clean
     assert "| 0.500 ~ | 2.0 | 0.750 ~ | 1.00 ~ | 16000 |" in page
     assert "| 2.00 | 2.0 | 3.00 | 4.00 | 4000 |" in page  # re-measured clean: no mark; CI ±2 %

@@ -1,5 +1,5 @@
-"""The executor interface: the runner submits `Work` (a job, and maybe the job that follows it on the same
-machine) and takes an `Ended` back as each piece ends; the executor decides where each job runs."""
+"""The executor interface: the runner submits `Work` (a job, its limits and maybe the machine it must run on)
+and takes an `Ended` back as each piece ends; the executor decides where each job runs."""
 
 from __future__ import annotations
 
@@ -30,13 +30,12 @@ class Limits:
 
 @dataclass(frozen=True, eq=False)
 class Work:
-    """A job to run and, when `then` is given, the job built from its result that runs next on the same
-    machine (a measurement after its conversion); `limits.timeout_s` covers both."""
+    """A job to run, how, and where: `on` an earlier Ended's `where` (the machine holding its files), or
+    any."""
 
     job: Job
     limits: Limits
-    then: Callable[[Any], Job] | None = None
-    on: Any = None  # the machine to run on (an earlier Ended's `where`, holding its files); None: any
+    on: Any = None
 
 
 @dataclass(frozen=True)

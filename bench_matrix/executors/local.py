@@ -3,13 +3,13 @@ Ray node runs its tasks' jobs with it too."""
 
 from __future__ import annotations
 
-import time
 from collections.abc import Iterator
 
 from bench_matrix.errors import UserError
 from bench_matrix.executors.base import Ended, Executor, Limits, Phase, Tick, Work
 from bench_matrix.executors.process import run_in_process
-from bench_matrix.jobs import Job, ProbeJob
+from bench_matrix.executors.rounds import measure_in_rounds
+from bench_matrix.jobs import ProbeJob, RoundsJob
 from bench_matrix.jobs.results import Probe
 from bench_matrix.measure import env as environment
 from bench_matrix.workspace import Workspace
@@ -49,20 +49,13 @@ class LocalExecutor(Executor):
             yield self._ended.pop(0)
 
     def run(self, work: Work, on_phase: Phase = lambda _: None, tick: Tick = lambda: None) -> Ended:
-        """Run the work's job, then the job built from its result within what is left of the time limit."""
-        deadline = time.monotonic() + work.limits.timeout_s
-        ended = self._step(work, Ended(work, (), ()), work.job, work.limits.timeout_s, on_phase, tick)
-        if not ended.ok or work.then is None:
-            return ended
-        left = max(deadline - time.monotonic(), 1.0)
-        return self._step(work, ended, work.then(ended.result), left, on_phase, tick)
-
-    def _step(self, work: Work, so_far: Ended, job: Job, timeout_s: float, on_phase: Phase,
-              tick: Tick) -> Ended:
-        """The work after one more of its jobs ran, in its own process."""
-        outcome = run_in_process(job, self.workspace.jobs, work.limits.log, timeout_s, work.limits.threads,
+        """Run the work's job in its own process (a rounds job: one process per cell, executors/rounds.py)."""
+        job, limits = work.job, work.limits
+        if isinstance(job, RoundsJob):
+            measured = measure_in_rounds(job, self.workspace.jobs, limits.log.parent, on_phase)
+            return Ended(work, (job,), (measured,))
+        outcome = run_in_process(job, self.workspace.jobs, limits.log, limits.timeout_s, limits.threads,
                                  on_phase, tick)
-        jobs = (*so_far.jobs, job)
         if not outcome.ok:
-            return Ended(work, jobs, so_far.results, outcome.error, outcome.user_error, environment.capture())
-        return Ended(work, jobs, (*so_far.results, outcome.result))
+            return Ended(work, (job,), (), outcome.error, outcome.user_error, environment.capture())
+        return Ended(work, (job,), (outcome.result,))

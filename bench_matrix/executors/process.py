@@ -57,7 +57,7 @@ def run_in_process(job: Any, workdir: Path, log: Path, timeout_s: float, threads
     try:
         timed_out, last_phase = _wait(proc, read_fd, deadline, on_phase, tick)
     except BaseException:  # Ctrl-C or any error in the parent: never leave a child measuring
-        _kill_group(proc)
+        kill_group(proc)
         raise
     finally:
         os.close(read_fd)
@@ -76,18 +76,25 @@ def run_in_process(job: Any, workdir: Path, log: Path, timeout_s: float, threads
 def _start(job: Any, job_path: Path, result_path: Path, log: Path, threads: int | None,
            write_fd: int) -> subprocess.Popen:
     """The child, in its own session, its output appended to the log, its phases written to `write_fd`."""
-    env = {**os.environ, PHASE_FD: str(write_fd), "PYTHONUNBUFFERED": "1"}
+    proc = start_child(job, [str(job_path), str(result_path)], log, threads, {PHASE_FD: str(write_fd)},
+                       (write_fd,))
+    os.close(write_fd)
+    return proc
+
+
+def start_child(job: Any, args: list[str], log: Path, threads: int | None, variables: dict[str, str],
+                fds: tuple[int, ...]) -> subprocess.Popen:
+    """`python -m bench_matrix.executors.child ARGS` in its own session, its output appended to the log, with
+    these environment variables and file descriptors."""
+    env = {**os.environ, **variables, "PYTHONUNBUFFERED": "1"}
     if threads is not None:
         env.update({name: str(threads) for name in THREAD_VARIABLES})
     with open(log, "ab") as log_file:
         log_file.write(f"\n=== {type(job).function} {time.strftime('%Y-%m-%d %H:%M:%S')} ===\n".encode())
         log_file.flush()
-        proc = subprocess.Popen([sys.executable, "-m", "bench_matrix.executors.child", str(job_path),
-                                 str(result_path)], stdin=subprocess.DEVNULL,
-                                stdout=log_file, stderr=subprocess.STDOUT, pass_fds=(write_fd,), env=env,
-                                start_new_session=True)
-    os.close(write_fd)
-    return proc
+        return subprocess.Popen([sys.executable, "-m", "bench_matrix.executors.child", *args],
+                                stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT,
+                                pass_fds=fds, env=env, start_new_session=True)
 
 
 def _outcome(job: Any, proc: subprocess.Popen, result_path: Path, log: Path, last_phase: str) -> Outcome:
@@ -98,9 +105,9 @@ def _outcome(job: Any, proc: subprocess.Popen, result_path: Path, log: Path, las
             return Outcome(result=from_json(type(job).result, result["value"]))
         if result.get("user_error"):  # the user's mistake: the message alone says what to fix
             return Outcome(error=result["error"], user_error=True)
-        return Outcome(error=_reason(result["error"], result.get("traceback", "")))
-    return Outcome(error=f"the process died ({_describe_exit(proc.returncode)}) in phase '{last_phase}'; "
-                         f"last lines of {log}:\n{_tail(log)}")
+        return Outcome(error=error_reason(result["error"], result.get("traceback", "")))
+    return Outcome(error=f"the process died ({describe_exit(proc.returncode)}) in phase '{last_phase}'; "
+                         f"last lines of {log}:\n{log_tail(log)}")
 
 
 class _Deadline:
@@ -138,7 +145,7 @@ def _wait(proc: subprocess.Popen, read_fd: int, deadline: _Deadline, on_phase: C
         while True:
             remaining = deadline.remaining()
             if remaining is not None and remaining <= 0:
-                _kill_group(proc)
+                kill_group(proc)
                 return True, phase
             wait = remaining if phase == "measure" or remaining is None else min(remaining, 1.0)
             ready, _, _ = select.select(watched, [], [], wait)
@@ -169,7 +176,7 @@ def _phase(line: str, deadline: _Deadline) -> str:
     return line
 
 
-def _kill_group(proc: subprocess.Popen) -> None:
+def kill_group(proc: subprocess.Popen) -> None:
     try:
         os.killpg(proc.pid, signal.SIGKILL)
     except ProcessLookupError:
@@ -177,7 +184,7 @@ def _kill_group(proc: subprocess.Popen) -> None:
     proc.wait()
 
 
-def _describe_exit(code: int | None) -> str:
+def describe_exit(code: int | None) -> str:
     if code is not None and code < 0:
         try:
             return f"killed by signal {signal.Signals(-code).name}"
@@ -186,13 +193,13 @@ def _describe_exit(code: int | None) -> str:
     return f"exit code {code}"
 
 
-def _reason(error: str, trace: str) -> str:
+def error_reason(error: str, trace: str) -> str:
     """The error line plus the innermost traceback lines that locate it."""
     lines = [line for line in trace.strip().splitlines() if line.strip()]
     where = "\n".join(lines[-TAIL_LINES:-1]) if len(lines) > 1 else ""
     return f"{error}\n{where}".strip()
 
 
-def _tail(log: Path) -> str:
+def log_tail(log: Path) -> str:
     lines = log.read_text(errors="replace").splitlines()
     return "\n".join(lines[-TAIL_LINES:])

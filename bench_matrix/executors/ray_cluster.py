@@ -1,5 +1,6 @@
 """The Ray executor: the driver probes every node and runs every job as a Ray task, what it reads shipped
-through the object store; a node measures one cell at a time (the `bench_matrix_timing` resource)."""
+through the object store; a node runs one rounds job (a model's cells, timed together) at a time (the
+`bench_matrix_timing` resource)."""
 
 from __future__ import annotations
 
@@ -19,7 +20,8 @@ from bench_matrix.executors import ray_tasks
 from bench_matrix.executors.base import Ended, Executor, Limits, Phase, Tick, Work
 from bench_matrix.executors.local import PROBE_TIMEOUT_S
 from bench_matrix.executors.ray_tasks import NodeRun, Shipment
-from bench_matrix.jobs import ConvertJob, Job, MeasureJob, ProbeJob
+from bench_matrix.jobs import ConvertJob, Job, ProbeJob, RoundsJob
+from bench_matrix.jobs.results import MeasuredGroup
 from bench_matrix.matrix.expand import judge, training_key, verdict_key
 from bench_matrix.matrix.spec import file_kind
 from bench_matrix.measure import env as environment
@@ -38,16 +40,12 @@ NO_USAGE_STATS = "RAY_USAGE_STATS_ENABLED"  # "0": Ray sends no usage statistics
 
 @dataclass
 class _Flight:
-    """Work in flight: its attempt, the jobs started so far (the last one runs now) and the results of those
-    that ended, its node, when its task was submitted, and the first job's timing once it ended."""
+    """Work in flight: its attempt, its node, and when its task was submitted."""
 
     work: Work
     attempt: int
-    jobs: tuple[Job, ...]
-    results: tuple[Any, ...] = ()
     node: str | None = None
     submitted: float = 0.0
-    timing: dict[str, float] | None = None
 
 
 class RayExecutor(Executor):
@@ -122,21 +120,21 @@ class RayExecutor(Executor):
         self._start(work, attempt=1)
 
     def _start(self, work: Work, attempt: int) -> None:
-        flight = _Flight(work, attempt, (work.job,), node=work.on or self._placement(work.job))
-        self._launch(flight, work.limits.timeout_s)
+        flight = _Flight(work, attempt, node=work.on or self._placement(work.job))
+        self._launch(flight)
 
-    def _launch(self, flight: _Flight, timeout_s: float) -> None:
-        """Submit the flight's current job as a task, with what it reads shipped."""
-        job = flight.jobs[-1]
+    def _launch(self, flight: _Flight) -> None:
+        """Submit the flight's job as a task, with what it reads shipped."""
+        job = flight.work.job
         cell = _cell(job)
         shipments = {str(path): self._ship(path) for path in job.reads()}
         options = {"num_cpus": 1, "num_gpus": gpu_share(self._devices, cell) if cell else 0,
-                   "resources": {TIMING: MEASURE_SHARE if isinstance(job, MeasureJob) else JOB_SHARE},
+                   "resources": {TIMING: MEASURE_SHARE if isinstance(job, RoundsJob) else JOB_SHARE},
                    "max_retries": 0, "num_returns": 2, "name": f"{job.name}_on_node",
                    "scheduling_strategy": self._on(flight.node) if flight.node else "DEFAULT"}
         flight.submitted = time.time()
-        limits = replace(flight.work.limits, timeout_s=timeout_s)
-        ref, files = self._remote.options(**options).remote(job, limits, shipments, flight.submitted)
+        ref, files = self._remote.options(**options).remote(job, flight.work.limits, shipments,
+                                                            flight.submitted)
         self._flights[ref] = (flight, files)
 
     def _placement(self, job: Job) -> str | None:
@@ -192,40 +190,34 @@ class RayExecutor(Executor):
         for path, (key, name) in run.made.items():
             self._shipped[path] = Shipment(key, name, files, member=path)
         if run.error:
-            self._ended.append(Ended(flight.work, flight.jobs, flight.results, run.error, run.user_error,
-                                     run.env, run.node))
-        elif flight.work.then is not None and not flight.results:
-            self._follow(flight, run)
+            self._ended.append(Ended(flight.work, (flight.work.job,), (), run.error, run.user_error, run.env,
+                                     run.node))
         else:
-            result = self._placed(flight, run, flight.timing) if flight.timing else run.result
-            self._ended.append(Ended(flight.work, flight.jobs, (*flight.results, result), where=run.node))
+            self._ended.append(Ended(flight.work, (flight.work.job,), (self._placed(flight, run),),
+                                     where=run.node))
 
-    def _follow(self, flight: _Flight, run: NodeRun) -> None:
-        """Run the job built from the first one's result on the same node, within what is left of the
-        limit."""
-        flight.results, flight.timing = (run.result,), run.timing
-        flight.jobs = (*flight.jobs, flight.work.then(run.result))
-        used = run.timing["ship_s"] + run.timing["job_s"]
-        self._launch(flight, max(flight.work.limits.timeout_s - used, 1.0))
-
-    def _placed(self, flight: _Flight, run: NodeRun, converted: dict[str, float]) -> Any:
-        """A cell's measurement with where it ran and what Ray added (`env.ray`): waiting to be scheduled,
-        shipping, returning results."""
-        measured = run.timing
-        returned = max(time.time() - measured["ended"], 0.0)
-        ray_facts = {"node_id": run.node, "attempt": flight.attempt,
-                     "scheduled_s": round(converted["scheduled_s"] + measured["scheduled_s"], 4),
-                     "ship_s": round(converted["ship_s"], 4), "returned_s": round(returned, 4),
-                     "convert_s": round(converted["job_s"], 4), "measure_s": round(measured["job_s"], 4)}
-        return replace(run.result, env={**run.result.env, "ray": ray_facts})
+    def _placed(self, flight: _Flight, run: NodeRun) -> Any:
+        """A rounds job's result with where each cell ran and what Ray added (`env.ray`): waiting to be
+        scheduled, shipping, measuring, returning; other results as they came."""
+        if not isinstance(run.result, MeasuredGroup):
+            return run.result
+        facts = {"node_id": run.node, "attempt": flight.attempt,
+                 "scheduled_s": round(run.timing["scheduled_s"], 4), "ship_s": round(run.timing["ship_s"], 4),
+                 "measure_s": round(run.timing["job_s"], 4),
+                 "returned_s": round(max(time.time() - run.timing["ended"], 0.0), 4)}
+        return replace(run.result, cells=tuple(
+            replace(c, measured=replace(c.measured, env={**c.measured.env, "ray": facts}))
+            if c.measured else c
+            for c in run.result.cells))
 
     def _lost(self, flight: _Flight, why: str) -> None:
-        """Run lost work again from its first job, on the nodes still alive, or fail it (work pinned to a node
-        fails at once)."""
+        """Run lost work again, on the nodes still alive (work pinned to a node: on it, while it lives), or
+        fail it."""
         alive = {n["NodeID"] for n in self.ray.nodes() if n.get("Alive")}
         self.nodes = {n: gpus for n, gpus in self.nodes.items() if n in alive}
         self._able = {key: [n for n in able if n in alive] for key, able in self._able.items()}
-        if flight.attempt < MAX_ATTEMPTS and not flight.work.on and self._able_nodes(flight.work.job):
+        where = [flight.work.on] if flight.work.on else self._able_nodes(flight.work.job)
+        if flight.attempt < MAX_ATTEMPTS and set(where) & alive:
             self._start(flight.work, flight.attempt + 1)
             return
         tries = f"{flight.attempt} attempts" if flight.attempt > 1 else "1 attempt; no node left to retry on"
@@ -235,7 +227,7 @@ class RayExecutor(Executor):
         env = environment.capture()
         if flight.node in self.hostnames:
             env["host"] = self.hostnames[flight.node]
-        return Ended(flight.work, flight.jobs, flight.results, reason, env=env, where=flight.node)
+        return Ended(flight.work, (flight.work.job,), (), reason, env=env, where=flight.node)
 
     def close(self) -> None:
         for ref in self._flights:
@@ -250,8 +242,11 @@ def gpu_share(known: dict[tuple[str, str], str], cell: Cell) -> float:
 
 
 def _cell(job: Job) -> Cell | None:
-    """The cell a job belongs to (a conversion's or a measurement's); None for shared preparation."""
-    return job.cell if isinstance(job, (ConvertJob, MeasureJob)) else None
+    """The cell a job belongs to (a conversion's; a rounds job's first: its cells share a machine); None for
+    shared preparation."""
+    if isinstance(job, RoundsJob):
+        return job.cells[0].cell
+    return job.cell if isinstance(job, ConvertJob) else None
 
 
 def _connect(ray: Any, address: str | None) -> None:

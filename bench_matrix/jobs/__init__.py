@@ -8,7 +8,15 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from bench_matrix.cell import Cell, Planned
-from bench_matrix.jobs.results import Converted, Finetuned, Measured, PreparedData, PreparedModel, Probe
+from bench_matrix.jobs.results import (
+    Converted,
+    Finetuned,
+    Measured,
+    MeasuredGroup,
+    PreparedData,
+    PreparedModel,
+    Probe,
+)
 from bench_matrix.matrix.expand import TrainingKey, VerdictKey
 from bench_matrix.matrix.spec import DatasetSpec, ModelSpec, Settings, StrategySpec
 from bench_matrix.sources import SourceModel
@@ -123,11 +131,12 @@ class ConvertJob(Job):
 
 @dataclass(frozen=True)
 class MeasureJob(Job):
-    """Load a converted artifact, time it, evaluate it against the labels and the baseline's outputs (the
-    latency scenario), then run the cell's other planned scenarios with it."""
+    """One cell of a RoundsJob: its converted artifact, loaded in a session process of its own and kept there
+    while the executor times it in windows; then evaluated against the labels and the baseline's outputs
+    (the latency scenario) and run through the cell's other planned scenarios."""
 
     name = "measure"
-    function = "bench_matrix.jobs.measure:measure"
+    function = "bench_matrix.jobs.measure:open_session"  # a Served session: windows on demand, then finish
     result = Measured
     cell: Cell
     task: str
@@ -143,3 +152,20 @@ class MeasureJob(Job):
 
     def reads(self) -> tuple[Path, ...]:
         return tuple(p for p in (self.data.directory, self.reference) if p is not None)
+
+
+@dataclass(frozen=True)
+class RoundsJob(Job):
+    """Measure a model's converted cells on one machine together, in interleaved rounds (docs/metrics.md §5):
+    the executor keeps each cell's session loaded in its own process and owns the clock; the speed-ups are
+    paired against `baseline` (a cell key), when it is among the cells."""
+
+    name = "measure"
+    function = "bench_matrix.executors.rounds:measure_in_rounds"  # runs in the executor's process
+    result = MeasuredGroup
+    cells: tuple[MeasureJob, ...]
+    logs: tuple[str, ...]  # each cell's log file name, in the folder of the work's log
+    baseline: str | None = None
+
+    def reads(self) -> tuple[Path, ...]:
+        return tuple(dict.fromkeys(p for job in self.cells for p in job.reads()))

@@ -1,33 +1,57 @@
-"""The measure job: load a cell's artifact once, then run the latency scenario and the cell's planned
-scenarios with the loaded session (bench_matrix/scenarios)."""
+"""The measure job: load a cell's artifact once and keep it, serving timed windows of the executor's rounds
+(the latency scenario's Timer); then evaluate it and run the cell's planned scenarios with the loaded
+session (bench_matrix/scenarios)."""
 
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
-from bench_matrix.phases import phase
 from bench_matrix.cell import Planned
 from bench_matrix.jobs import MeasureJob
 from bench_matrix.jobs.results import Measured
 from bench_matrix.measure import env as environment
 from bench_matrix.measure.affinity import pin_threads
 from bench_matrix.measure.gpu import GpuMemory
+from bench_matrix.measure.schedule import Window
 from bench_matrix.measurement import Measurement
 from bench_matrix.named import resolve
+from bench_matrix.phases import phase
 from bench_matrix.registry import load_backend
 from bench_matrix.scenarios import latency
 from bench_matrix.scenarios.base import Loaded, Outcome
 
 
-def measure(job: MeasureJob) -> Measured:
-    """Load the session, measure its latency, then each planned scenario in order, after every timed loop."""
+@dataclass(frozen=True)
+class Served:
+    """A cell's loaded session kept alive in its process: windows on demand, then `finish`."""
+
+    loaded: Loaded
+    timer: latency.Timer
+
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        return self.timer.kinds
+
+    def window(self, kind: str, seconds: float) -> Window:
+        return self.timer.window(kind, seconds)
+
+    def finish(self) -> Measured:
+        """Evaluate the session, then run each planned scenario in order; the timed figures are the
+        executor's to add."""
+        loaded = self.loaded
+        outcomes = [latency.run(loaded), *(_run(planned, loaded) for planned in loaded.job.scenarios)]
+        metrics = Measurement.from_json({k: v for outcome in outcomes for k, v in outcome.fields.items()})
+        samples = {k: v for outcome in outcomes for k, v in outcome.samples.items()}
+        env = {**environment.capture(), "backend_versions": loaded.backend.versions(),
+               "runtime": loaded.session.info()}
+        return Measured(metrics, samples, env)
+
+
+def open_session(job: MeasureJob) -> Served:
+    """Load the cell's artifact, prepare its inputs and warm each kind of window up once."""
     loaded = load(job)
-    outcomes = [latency.run(loaded), *(_run(planned, loaded) for planned in job.scenarios)]
-    metrics = Measurement.from_json({k: v for outcome in outcomes for k, v in outcome.fields.items()})
-    samples = {k: v for outcome in outcomes for k, v in outcome.samples.items()}
-    env = {**environment.capture(), "backend_versions": loaded.backend.versions(),
-           "runtime": loaded.session.info()}
-    return Measured(metrics, samples, env)
+    return Served(loaded, latency.timer(loaded))
 
 
 def load(job: MeasureJob) -> Loaded:

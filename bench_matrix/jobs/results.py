@@ -105,3 +105,20 @@ class Measured(Result):
     metrics: Measurement
     samples: dict[str, bytes]
     env: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class CellMeasured(Result):
+    """One cell of a rounds job: its measurement, or why it failed (and whether that is the user's to fix)."""
+
+    key: str
+    measured: Measured | None = None
+    error: str | None = None
+    user_error: bool = False
+
+
+@dataclass(frozen=True)
+class MeasuredGroup(Result):
+    """The rounds job's result: each cell's, in the job's order."""
+
+    cells: tuple[CellMeasured, ...]

@@ -87,6 +87,9 @@ def _describe(error: jsonschema.ValidationError, report: Located) -> None:
     if kind == "additionalProperties" and isinstance(value, dict):
         allowed = sorted(schema.get("properties", {}))
         for key in [k for k in value if k not in schema.get("properties", {})]:
+            if key in schema.get("x-retired", {}):
+                report.add(at + (key,), schema["x-retired"][key])
+                continue
             none = schema.get("x-message", "no keys are allowed here")
             hint = f"allowed: {', '.join(allowed)}" if allowed else none
             report.add(at + (key,), f"unknown key '{key}'; {hint}{suggest(key, allowed)}")

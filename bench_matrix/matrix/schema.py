@@ -37,6 +37,11 @@ MAX_DIM = 1_000_000  # length of one axis
 MAX_SAMPLE_ELEMENTS = 1 << 26  # values in one sample of one input (a 4K RGB image has 25 M)
 
 
+RETIRED = {key: "retired: timing is interleaved rounds now; set window_s, min_rounds, ci_target, "
+                "timing_budget_s (docs/metrics.md §5)" for key in
+           ("min_iterations", "min_time_s", "max_time_s", "ci_rel_width", "throughput_time_s", "passes")}
+
+
 def _count(minimum: int, maximum: int, **extra: Any) -> dict[str, Any]:
     return {"type": "integer", "minimum": minimum, "maximum": maximum, **extra}
 
@@ -274,25 +279,28 @@ SCHEMA: dict[str, Any] = {
                     "description": "metric plugins to compute for every cell, besides the task's own"},
         "include": {"type": "array", "items": SELECTOR},
         "exclude": {"type": "array", "items": SELECTOR},
-        "settings": {"type": "object", "additionalProperties": False, "properties": {
-            "warmup_iterations": _count(0, MAX_ITERATIONS),
-            "warmup_s": seconds(),
-            "min_iterations": _count(1, MAX_ITERATIONS),
-            "min_time_s": seconds(),
-            "max_time_s": seconds(exclusive=True),
-            "ci_rel_width": {"type": "number", "exclusiveMinimum": 0, "maximum": 1,
-                             "description": "after the minimum count and time, the latency loop stops once "
-                                            "the 95 % confidence interval of the p50 spans at most this "
-                                            "fraction of it (else it goes on up to max_time_s)"},
+        "settings": {"type": "object", "additionalProperties": False, "x-retired": RETIRED, "properties": {
+            "warmup_iterations": _count(0, MAX_ITERATIONS, description="untimed calls when a session is "
+                                                                        "loaded, before its rounds"),
+            "warmup_s": seconds(description="and seconds of them at least"),
+            "window_s": seconds(60, exclusive=True, description="each cell's timed window of each kind in "
+                                                                 "a round"),
+            "min_rounds": _count(2, 1000, description="rounds before the intervals may stop them"),
+            "ci_target": {"type": "number", "exclusiveMinimum": 0, "maximum": 1,
+                          "description": "rounds stop once every cell's p50 and speed-up 95 % intervals are "
+                                         "within ± this fraction (0.02 = ±2 %)"},
+            "timing_budget_s": seconds(exclusive=True, description="seconds of rounds per cell at most: a "
+                                                                   "model's rounds stop when its cells' "
+                                                                   "share is spent"),
+            "memory_share": {"type": "number", "exclusiveMinimum": 0, "maximum": 1,
+                             "description": "share of the available memory the loaded sessions of a model "
+                                            "may use at once; beyond it, cells are measured in groups"},
             "batch_size": _count(1, MAX_BATCH),
-            "throughput_time_s": seconds(exclusive=True),
             "threads": _count(1, MAX_THREADS),
             "timeout_s": seconds(MAX_TIMEOUT_S, exclusive=True,
                                   description="per cell, conversion and measurement together"),
             "seed": _SEED,
             "eval_samples": _count(1, MAX_SAMPLES),
-            "passes": _count(1, 100, description="measure every cell this many times, round-robin; keep the "
-                                                 "lowest p50"),
         }},
     },
 }

@@ -138,19 +138,18 @@ class StrategySpec:
 class Settings:
     """Measurement settings shared by every cell."""
 
-    warmup_iterations: int = 20
+    warmup_iterations: int = 20  # once per session, before its rounds
     warmup_s: float = 0.5
-    min_iterations: int = 200
-    min_time_s: float = 2.0
-    max_time_s: float = 60.0
-    ci_rel_width: float = 0.2  # after the minimums, stop once the p50's 95 % interval spans this much of it
+    window_s: float = 0.2  # each cell's timed window of each kind, once per round (docs/metrics.md §5)
+    min_rounds: int = 5
+    ci_target: float = 0.02  # rounds stop once every p50 and speed-up interval is within ± this
+    timing_budget_s: float = 4.0  # per cell: a model's rounds stop when its cells' share is spent
+    memory_share: float = 0.5  # of the available memory, for a model's sessions loaded at once
     batch_size: int = 32
-    throughput_time_s: float = 1.0
     threads: int = 1
     timeout_s: float = 600.0
     seed: int = 0
     eval_samples: int | None = None
-    passes: int = 1  # latency windows per cell, round-robin over the cells; the least disturbed is kept
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

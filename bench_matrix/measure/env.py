@@ -38,6 +38,18 @@ def memory_gb() -> float | None:
         return None
 
 
+def available_memory_mb() -> float:
+    """Memory available to new processes (MemAvailable of /proc/meminfo; else the physical memory), in MiB."""
+    try:
+        with open("/proc/meminfo") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return (memory_gb() or 4.0) * 1024
+
+
 def installed_versions(*distributions: str) -> dict[str, str]:
     """Versions of those `distributions` that are installed, read from their metadata (nothing imported)."""
     found = {}

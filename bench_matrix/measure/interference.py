@@ -11,8 +11,8 @@ from dataclasses import dataclass
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")  # /proc/stat counts in these units per second
 BUSY_FIELDS = (0, 1, 2, 5, 6)  # user, nice, system, irq, softirq (guest time is already inside user)
 STEAL_FIELD = 7
-JUDGED_FROM_S = 40 / CLOCK_TICKS  # /proc/stat counts whole ticks: over a shorter window, an error of two
-# ticks per CPU would exceed the 5 % other_share limit, so shorter phases are recorded but never judged
+JUDGED_FROM_S = 40 / CLOCK_TICKS  # /proc/stat counts whole ticks: a shorter window's shares are judged with
+COUNTING_ERROR_S = 2 / CLOCK_TICKS  # this much (two ticks per CPU) taken off, so that only gross work counts
 
 
 @dataclass(frozen=True)
@@ -44,16 +44,16 @@ class Interference:
         return self.preemptions / self.wall_s if self.wall_s > 0 else 0.0
 
     def problem(self, limits: Limits) -> str | None:
-        """Why this phase counts as disturbed under `limits`, or None when it does not (or is too short to
-        judge: JUDGED_FROM_S)."""
-        if self.wall_s < JUDGED_FROM_S:
-            return None
+        """Why this window counts as disturbed under `limits`, or None when it does not (a window shorter than
+        JUDGED_FROM_S with the counting error taken off its shares)."""
+        slack = COUNTING_ERROR_S / self.wall_s if self.wall_s < JUDGED_FROM_S else 0.0
         checks = ((self.other_share, limits.other_share,
                    "other processes took {:.0%} of the measuring CPU(s) (limit {:.0%})"),
                   (self.machine_share, limits.machine_share,
                    "other processes took {:.0%} of the machine's CPU time (limit {:.0%})"),
                   (self.steal_share, limits.steal_share, "CPU steal {:.0%} (limit {:.0%})"))
-        return "; ".join(text.format(value, limit) for value, limit, text in checks if value > limit) or None
+        return "; ".join(text.format(value, limit) for value, limit, text in checks
+                         if value - slack > limit) or None
 
     def as_dict(self) -> dict[str, object]:
         """The figures as stored in a record (shares and rates rounded to 4 digits)."""

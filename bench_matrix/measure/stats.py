@@ -49,13 +49,6 @@ def median_interval(values: np.ndarray, confidence: float = CONFIDENCE) -> tuple
     return float(lo), float(hi)
 
 
-def relative_width(values: np.ndarray) -> float | None:
-    """(hi - lo) / median of the median's 95 % interval, or None when it has none."""
-    interval = median_interval(values)
-    median = float(np.median(values)) if interval else 0.0
-    return (interval[1] - interval[0]) / median if interval and median > 0 else None
-
-
 def pack_samples(durations_ns: np.ndarray) -> bytes:
     """Raw durations as zlib-compressed little-endian float32 milliseconds."""
     return zlib.compress(np.asarray(np.asarray(durations_ns) / 1e6, dtype=SAMPLES_DTYPE).tobytes(), 6)

@@ -16,7 +16,7 @@ from bench_matrix.report.summary import (
     figure,
     metric,
     number,
-    unsteady_phases,
+    wide_phases,
 )
 from bench_matrix.store import CellRecord
 
@@ -76,14 +76,14 @@ def _method(row: Row) -> str:
     return row.record.cell.label + (" (baseline)" if row.is_baseline else "")
 
 
-APPROXIMATE = " ~"  # after a figure of a timed phase that was disturbed or unsteady: see docs/metrics.md
+APPROXIMATE = " ~"  # after a figure of a timed phase that was disturbed or too wide: see docs/metrics.md
 
 
 def _timed(phase: str, read: Callable[[Measurement], Any]) -> Callable[[Row], str]:
     """A figure of a timed phase, marked APPROXIMATE when that phase never had a clean attempt."""
     def render(row: Row) -> str:
         text = sig(figure(row.record, read), 3)
-        marked = phase in disturbed_phases(row.record) or phase in unsteady_phases(row.record)
+        marked = phase in disturbed_phases(row.record) or phase in wide_phases(row.record)
         return text + APPROXIMATE if text != DASH and marked else text
     return render
 
@@ -119,13 +119,15 @@ LEADING: tuple[Column, ...] = (
            optional=True),
 )
 TRAILING: tuple[Column, ...] = (
-    Column("p50\nms", "median latency of one inference at batch 1, in milliseconds, after warm-up; "
-                       "\"~\" after a timing figure marks a phase that had no clean attempt: disturbed by "
-                       "other processes or CPU steal above the limits, or unsteady (its chunk medians "
-                       "drifted); treat it as approximate (the cell is listed under Disturbed or Unsteady).",
+    Column("p50\nms", "median latency of one inference at batch 1, in milliseconds, over every round's "
+                       "window; \"~\" after a timing figure marks a phase with too many windows disturbed "
+                       "by other processes or CPU steal, or whose interval stayed wider than the target "
+                       "(older records: no clean attempt); treat it as approximate (the cell is listed "
+                       "under Disturbed or Wide).",
            _timed("latency", lambda m: m.latency and m.latency.p50), SPEED),
-    Column("p50 CI\n±%", "half the width of the 95 % confidence interval of the p50 (distribution-free, "
-           "from order statistics), in % of the p50.", _ci, SPEED, optional=True),
+    Column("p50 CI\n±%", "half the width of the 95 % confidence interval of the p50, from the spread of its "
+           "per-round medians (older records: order statistics of the samples), in % of the p50.", _ci, SPEED,
+           optional=True),
     Column("e2e p50\nms", "GPU cells: median latency at batch 1 including the host-to-device copy of the input "
            "and the copy of the outputs back (p50 ms counts the computation only, input already on the device).",
            _timed("latency_e2e", lambda m: m.latency_e2e and m.latency_e2e.p50), SPEED, optional=True),
@@ -140,8 +142,10 @@ TRAILING: tuple[Column, ...] = (
     Column("GPU\nMiB", "GPU cells: GPU memory the measuring process held after its runs, in MiB (see "
            "docs/metrics.md for how it is read).", lambda r: fixed(figure(r.record, _gpu_mb), 0),
            THROUGHPUT, optional=True),
-    Column("Speed-up", "baseline p50 ÷ cell p50: above 1× the cell is faster than the baseline.",
-           lambda r: times(r.speedup), SPEED),
+    Column("Speed-up", "baseline time ÷ cell time, paired round by round with its 95 % interval "
+           "(docs/metrics.md §5; older records: baseline p50 ÷ cell p50): above 1× the cell is faster.",
+           lambda r: times(r.speedup) + (f" ±{r.speedup_half:.1%}" if r.speedup_half is not None else ""),
+           SPEED),
     Column("vs own\nfp32", "the same backend's fp32 cell (strategy none, same target) p50 ÷ cell p50: what the "
            "optimisation gains within one runtime.", lambda r: times(r.speedup_own_fp32), SPEED),
 )

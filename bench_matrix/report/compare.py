@@ -7,8 +7,11 @@ how many of each side's latencies lie above the pooled 99th percentile; throughp
 batch durations (threshold alone for records from before they were stored). The samples are autocorrelated
 timing series, not independent draws, so with thousands of them almost any shift is "significant": the
 threshold does the real work; the test stops a few noisy samples from passing for a change. A timed phase
-flagged for interference on either side (every attempt disturbed) is not comparable: it cannot gate. Size and
-accuracy (deterministic) are judged by their threshold alone.
+flagged for interference on either side (every attempt disturbed) is not comparable: it cannot gate. Where
+both records have a speed-up paired by round against their baseline (docs/metrics.md §5), p50 is judged on it
+instead: drift of the machine between the two runs cancels in it, and it changes when the two speed-ups'
+95 % intervals tell them apart (the difference of their logarithms beyond both half-widths combined), beyond
+the p50 threshold. Size and accuracy (deterministic) are judged by their threshold alone.
 
 Changes are relative ((new - base) / base) for p50, p99, throughput, size and error metrics where lower is
 better (mse); absolute (new - base) for fractions where higher is better (top1, cosine_similarity). A
@@ -194,8 +197,9 @@ def _compare_cell(key: str, pair: _Pair, limits: Mapping[str, float], alpha: flo
     why = _cell_problem(pair)
     if why:
         return CellComparison(key, cell.model, cell.label, (), NOT_COMPARABLE, why, _disturbed(pair))
-    changes = (_latency(pair, "p50", limits, alpha), _latency(pair, "p99", limits, alpha),
-               _throughput(pair, limits, alpha), _size(pair, limits), _accuracy(pair, limits))
+    p50 = _paired(pair, limits) or _latency(pair, "p50", limits, alpha)
+    changes = (p50, _latency(pair, "p99", limits, alpha), _throughput(pair, limits, alpha),
+               _size(pair, limits), _accuracy(pair, limits))
     found = {c.verdict for c in changes}
     verdict = next((v for v in _CELL_ORDER if v in found), UNCHANGED)
     return CellComparison(key, cell.model, cell.label, changes, verdict, None, _disturbed(pair))
@@ -258,6 +262,19 @@ def _latency(pair: _Pair, which: str, limits: Mapping[str, float], alpha: float)
     before, after = (np.asarray(samples[role], np.float64) for role in ("base", "new"))
     p_value = _tail_p_value(before, after) if which == "p99" else _shift_p_value(before, after)
     return judge.judged(significant=p_value < alpha, p_value=p_value)
+
+
+def _paired(pair: _Pair, limits: Mapping[str, float]) -> MetricChange | None:
+    """p50 judged on the speed-ups paired by round, where both records have one (else None): changed when
+    their intervals tell them apart and beyond the p50 threshold."""
+    found = [record.metrics.speedup for record in pair.both()]
+    if any(s is None or s.value is None or s.ci_half is None for s in found):
+        return None
+    base, new = found
+    judge = _MetricJudge("p50", "speedup.value", base.value, new.value, True, limits["p50"], "higher")
+    spread = math.hypot(math.log1p(base.ci_half), math.log1p(new.ci_half))
+    apart = abs(math.log(new.value / base.value)) > spread
+    return judge.judged(significant=apart)
 
 
 def _shift_p_value(before: np.ndarray, after: np.ndarray) -> float:

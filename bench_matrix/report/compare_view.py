@@ -13,7 +13,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from bench_matrix.report.columns import DASH, mib, sig
+from bench_matrix.report.columns import DASH, mib, sig, times
 from bench_matrix.report.compare import (
     BETTER,
     METRICS,
@@ -42,7 +42,8 @@ def method_line(comparison: Comparison) -> str:
     """How the verdicts were reached: the test, alpha and every threshold."""
     limits = comparison.thresholds
     return (f"Timed metrics: {comparison.test}, on the raw samples; a change counts when p < "
-            f"{comparison.alpha:g} and it is beyond its threshold. Size and accuracy: threshold only. "
+            f"{comparison.alpha:g} and it is beyond its threshold; p50 on the speed-up paired by round "
+            f"where both sides have one (×: its 95 % intervals apart). Size and accuracy: threshold only. "
             f"Thresholds: p50 {_percent(limits['p50'])}, p99 {_percent(limits['p99'])}, throughput "
             f"{_percent(limits['throughput'])}, size {_percent(limits['size'])}, accuracy "
             f"{_percent(limits['accuracy_relative'])} relative for error metrics (mse), "
@@ -55,7 +56,8 @@ def title_line(comparison: Comparison) -> str:
 
 def figure(change: MetricChange) -> str:
     """"1.20 → 1.50 (+25.0 %)"; "(n/c)" instead of the change when it is not comparable."""
-    render = _FORMATS[change.metric]
+    # p50 judged on the speed-up
+    render = times if change.name == "speedup.value" else _FORMATS[change.metric]
     shown = f"{render(change.base)} → {render(change.new)}"
     if change.verdict == NOT_COMPARABLE:
         return f"{shown} (n/c)"

@@ -81,12 +81,12 @@ def _model_section(index: int, model: ModelSummary, plots: Sequence[Plot]) -> st
 
 
 def _notes(model: ModelSummary) -> list[str]:
-    """The baseline note, suspect cells, and cells whose timing was disturbed or unsteady."""
+    """The baseline note, suspect cells, and cells whose timing was disturbed or too wide."""
     note = baseline_note(model)
     found = [f'<p class="note"><strong>Note:</strong> {esc(note)}</p>'] if note else []
     found += [f'<p class="note bad"><strong>Suspect:</strong> {esc(line)}</p>' for line in model.suspects]
     found += [f'<p class="note"><strong>Disturbed (~):</strong> {esc(line)}</p>' for line in model.disturbed]
-    found += [f'<p class="note"><strong>Unsteady (~):</strong> {esc(line)}</p>' for line in model.unsteady]
+    found += [f'<p class="note"><strong>Wide (~):</strong> {esc(line)}</p>' for line in model.wide]
     return found
 
 

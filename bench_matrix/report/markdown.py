@@ -85,7 +85,7 @@ def model_page(model: ModelSummary, plots: Sequence[Plot], out_dir: Path) -> str
         lines += [f"> **Note:** {note}", ""]
     lines += [line for suspect in model.suspects for line in (f"> **Suspect:** {_escape_text(suspect)}", "")]
     lines += [line for cell in model.disturbed for line in (f"> **Disturbed (~):** {_escape(cell)}", "")]
-    lines += [line for cell in model.unsteady for line in (f"> **Unsteady (~):** {_escape(cell)}", "")]
+    lines += [line for cell in model.wide for line in (f"> **Wide (~):** {_escape(cell)}", "")]
     lines += ["## Results", ""]
     if model.rows:
         columns = shown(model_columns(model), model.rows)

@@ -17,7 +17,7 @@ import numpy as np
 
 from bench_matrix.report.columns import APPROXIMATE, cell_names, sig
 from bench_matrix.report.pareto import Box, Point, accuracy_metric, place_labels, points, reference_sizes
-from bench_matrix.report.summary import ModelSummary, disturbed_phases, unsteady_phases
+from bench_matrix.report.summary import ModelSummary, disturbed_phases, wide_phases
 from bench_matrix.scenarios import selectable
 from bench_matrix.store import CellRecord
 
@@ -150,7 +150,7 @@ def _draw_key(figure: Any, entries: Sequence[tuple[str, bool]], top: float, colu
     """The "number: cell" list below the axes, column by column from `top` (inches), optimal cells bold."""
     notes = ["number on the chart, backend strategy precision [target]", "* Pareto-optimal (bold, ringed)"]
     if any(text.endswith(APPROXIMATE) for text, _ in entries):
-        notes.append("~ latency disturbed or unsteady (see the page)")
+        notes.append("~ latency disturbed or its interval too wide (see the page)")
     figure.text(LEFT, top, "Cells: " + ";  ".join(notes), fontsize=FONT, transform=figure.dpi_scale_trans,
                 va="top", style="italic")
     for k, (text, bold) in enumerate(entries):
@@ -299,7 +299,7 @@ def latency_figure(model: ModelSummary, timed: Sequence[tuple[CellRecord, np.nda
     axes.set_axisbelow(True)
     axes.set_xlabel("latency of one inference at batch 1, ms (box: 25th-75th percentile, black line: median, "
                     "whiskers: 1st-99th percentile)", fontsize=FONT + 1)
-    marked = "; ~ latency disturbed or unsteady" if any(APPROXIMATE in t for t in labels) else ""
+    marked = "; ~ latency disturbed or its interval too wide" if any(APPROXIMATE in t for t in labels) else ""
     axes.set_title(f"{_plain(model.name)}: latency per cell from the raw samples, fastest median on top"
                    f"{marked}", fontsize=FONT + 2, loc="left")
     return figure
@@ -345,8 +345,8 @@ def _scale(axes: Any, axis: str, values: Sequence[float]) -> None:
 
 
 def _approximate(record: CellRecord) -> bool:
-    """Whether the cell's latency is marked approximate in the results table (disturbed or unsteady)."""
-    return "latency" in disturbed_phases(record) or "latency" in unsteady_phases(record)
+    """Whether the cell's latency is marked approximate in the results table (disturbed or too wide)."""
+    return "latency" in disturbed_phases(record) or "latency" in wide_phases(record)
 
 
 def _plain(text: str) -> str:

@@ -9,7 +9,6 @@ from typing import Any
 
 from bench_matrix.measure.affinity import NOT_EXPOSED
 from bench_matrix.measure.metrics import HEADLINE
-from bench_matrix.measure.timing import DRIFT_LIMIT
 from bench_matrix.measurement import Measurement
 from bench_matrix.store import CellRecord
 
@@ -18,6 +17,8 @@ STATUSES = ("ok", "skipped", "failed")
 ENV_FIELDS = (("Host", "host"), ("OS", "os"), ("CPU", "cpu"), ("Cores", "cores"), ("Memory GB", "memory_gb"),
               ("CPU frequency", "cpu_frequency"), ("GPUs", "gpus"), ("Python", "python"),
               ("bench-matrix", "bench_matrix"))
+
+DRIFT_LIMIT = 0.05  # records from before the rounds: chunk medians of the latency drifted by more (unsteady)
 
 
 @dataclass(frozen=True)
@@ -30,6 +31,7 @@ class Row:
     size_ratio: float | None
     mse_delta: float | None
     speedup_own_fp32: float | None = None  # vs the same backend's fp32 cell (strategy none, same target)
+    speedup_half: float | None = None  # the paired speed-up's 95 % interval, its larger side relative
     accuracy_delta: float | None = None  # the task's headline metric (HEADLINE) minus the baseline's
 
 
@@ -58,7 +60,7 @@ class ModelSummary:
     environment: Environment
     suspects: tuple[str, ...] = ()  # cells at different precisions whose test outputs are bit-identical
     disturbed: tuple[str, ...] = ()  # cells flagged for interference (every attempt of a phase), and why
-    unsteady: tuple[str, ...] = ()  # cells whose kept latency attempt still drifted, and by how much
+    wide: tuple[str, ...] = ()  # cells whose latency interval stayed wider than the target (older: drifted)
 
     @property
     def task(self) -> str:
@@ -151,7 +153,7 @@ def _model(name: str, records: list[CellRecord], info: dict[str, Any]) -> ModelS
                         rows=rows, skipped=tuple(r for r in by_key if r.status == "skipped"),
                         failed=tuple(r for r in by_key if r.status == "failed"), environment=environment(records),
                         suspects=suspects(ok), disturbed=problem_lines(ok, disturbed_phases),
-                        unsteady=problem_lines(ok, unsteady_phases))
+                        wide=problem_lines(ok, wide_phases))
 
 
 def disturbed_phases(record: CellRecord) -> dict[str, str]:
@@ -160,25 +162,33 @@ def disturbed_phases(record: CellRecord) -> dict[str, str]:
     return _kept_problems(record, "disturbed")
 
 
-def unsteady_phases(record: CellRecord) -> dict[str, str]:
-    """The timed phases whose kept attempt still drifted, with why; for a record from before interference was
-    measured, its latency when its chunk medians drifted."""
+def wide_phases(record: CellRecord) -> dict[str, str]:
+    """The timed phases whose interval stayed wider than the target, with why; for records from before the
+    rounds, those whose kept attempt still drifted (from before interference was measured: by stability)."""
     if record.metrics.interference is not None:
-        return _kept_problems(record, "unsteady")
+        return _kept_problems(record, "wide")
     stability = figure(record, lambda m: m.passes.stability)
     return ({"latency": f"chunk medians drifted by {stability:.0%} (limit {DRIFT_LIMIT:.0%})"}
             if stability is not None and stability > DRIFT_LIMIT else {})
 
 
 def _kept_problems(record: CellRecord, kind: str) -> dict[str, str]:
-    """The `kind` ("disturbed" or "unsteady") text of each phase's kept attempt, where it has one."""
+    """The `kind` ("disturbed" or "wide") text of each timed phase, where it has one; in records from before
+    the rounds, that of the kept attempt ("wide" was "unsteady")."""
     interference = record.metrics.interference
     phases = interference.phases if interference is not None else None
     found = {}
     for name, phase in (phases if isinstance(phases, dict) else {}).items():
-        attempts, kept = (phase.get("attempts"), phase.get("kept")) if isinstance(phase, dict) else ([], None)
+        if not isinstance(phase, dict):
+            continue
+        if "attempts" not in phase:  # the rounds: each phase says why it is marked
+            if isinstance(text := phase.get(kind), str) and text:
+                found[name] = text
+            continue
+        attempts, kept = phase.get("attempts"), phase.get("kept")
         if isinstance(attempts, list) and isinstance(kept, int) and 0 <= kept < len(attempts):
-            text = attempts[kept].get(kind) if isinstance(attempts[kept], dict) else None
+            old = {"wide": "unsteady"}.get(kind, kind)
+            text = attempts[kept].get(old) if isinstance(attempts[kept], dict) else None
             if text:
                 found[name] = f"{text} ({len(attempts)} attempts, none clean)"
     return found
@@ -220,10 +230,22 @@ def _row(record: CellRecord, reference: CellRecord | None, own_fp32: CellRecord 
     if reference is None:
         return Row(record, False, None, None, None, own)
     return Row(record=record, is_baseline=record is reference,
-               speedup=_ratio(p50(reference), p50(record)),
+               speedup=_paired(record, reference) or _ratio(p50(reference), p50(record)),
+               speedup_half=_paired_half(record, reference),
                size_ratio=_ratio(*(figure(r, lambda m: m.size.bytes) for r in (reference, record))),
                mse_delta=_difference(record, reference, "mse"), speedup_own_fp32=own,
                accuracy_delta=_difference(record, reference, headline_metric) if headline_metric else None)
+
+
+def _paired(record: CellRecord, reference: CellRecord) -> float | None:
+    """The cell's speed-up paired by round against the baseline it was timed with (docs/metrics.md §5)."""
+    found = record.metrics.speedup
+    return number(found.value) if found is not None and record is not reference else None
+
+
+def _paired_half(record: CellRecord, reference: CellRecord) -> float | None:
+    found = record.metrics.speedup
+    return number(found.ci_half) if found is not None and record is not reference else None
 
 
 def _difference(record: CellRecord, reference: CellRecord, key: str) -> float | None:

@@ -70,8 +70,8 @@ def _print_model(model: ModelSummary, console: Console) -> None:
         console.print(Text(f"Suspect: {suspect}", style="bold red"))
     for line in model.disturbed:
         console.print(Text(f"Disturbed (~): {line}", style="yellow"))
-    for line in model.unsteady:
-        console.print(Text(f"Unsteady (~): {line}", style="yellow"))
+    for line in model.wide:
+        console.print(Text(f"Wide (~): {line}", style="yellow"))
     if model.rows:
         console.print(*results_tables(model, console))
     for scenario in selectable():

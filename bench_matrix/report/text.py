@@ -36,14 +36,30 @@ def skip_reason(record: CellRecord) -> str:
 
 
 def caption(model: ModelSummary) -> str:
-    """What the results table shows and how its rows are ordered."""
+    """What the results table shows, how it was timed and how its rows are ordered."""
     batches = ", ".join(map(str, model.batch_sizes)) or DASH
     threads = ", ".join(map(str, model.threads)) or DASH
     return (f"Rows are the ok cells, baseline first, then fastest p50 first. Latency at batch 1; "
-            f"throughput at batch size {batches}; {threads} thread(s). "
-            "Speed-up = baseline p50 ÷ cell p50 (>1× = faster); "
+            f"throughput at batch size {batches}; {threads} thread(s). {timing_line(model)} "
+            "Speed-up = baseline time ÷ cell time, paired by round (± its 95 % interval; older records: "
+            "baseline p50 ÷ cell p50; >1× = faster); "
             "size ratio = baseline size ÷ cell size (>1× = smaller); "
             "↑ = higher is better, ↓ = lower is better.")
+
+
+def timing_line(model: ModelSummary) -> str:
+    """How the model's cells were timed, in one sentence (docs/metrics.md §5)."""
+    facts = [r.record.metrics.rounds for r in model.rows if r.record.metrics.rounds is not None]
+    if not facts:
+        return "Timed one cell after another (records from before the interleaved rounds)."
+    counts = sorted(f.rounds for f in facts if f.rounds is not None) or [0]
+    windows = sorted({f.window_s for f in facts if f.window_s is not None})
+    length = f"{windows[0]:g} s" if len(windows) == 1 else "short"
+    span = f"{counts[0]}" if counts[0] == counts[-1] else f"{counts[0]}–{counts[-1]}"
+    stopped = sum(f.stop == "budget" for f in facts)
+    budget = f"; {stopped} stopped by the time budget" if stopped else ""
+    return (f"Timed in {span} interleaved rounds of {length} windows per cell, each round in a fresh random "
+            f"order{budget}; p50 intervals from the per-round medians.")
 
 
 def baseline_note(model: ModelSummary) -> str | None:

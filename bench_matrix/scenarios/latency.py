@@ -1,76 +1,98 @@
-"""The latency scenario, run first by every measure job: the loaded session timed at batch 1 (and end to end
-on a GPU) and at throughput, then its outputs evaluated."""
+"""The latency scenario, run by every measure job: the loaded session timed at batch 1 (and end to end on a
+GPU) and at the throughput batch in the windows of interleaved rounds (the executor owns the clock:
+docs/metrics.md §5), then its outputs evaluated; the timed figures are made from the rounds' windows."""
 
 from __future__ import annotations
 
 import hashlib
 import resource
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from bench_matrix import data, hardware
-from bench_matrix.phases import phase, waiting
 from bench_matrix.jobs import MeasureJob
 from bench_matrix.jobs.artifact import predict_all
-from bench_matrix.matrix.spec import Settings
 from bench_matrix.measure.gpu import GpuMemory
-from bench_matrix.measure.interference import Limits
-from bench_matrix.measure.machine_lock import timing_slot
+from bench_matrix.measure.interference import Limits, Sampler
 from bench_matrix.measure.metrics import evaluate, non_finite_reason
+from bench_matrix.measure.schedule import LATENCY, Window
 from bench_matrix.measure.size import artifact_size
-from bench_matrix.measure.stats import latency_summary, pack_samples
-from bench_matrix.measure.timing import (
-    LoopSettings,
-    Phase,
-    drift,
-    interference_record,
-    steady_throughput,
-    steady_time_calls,
-)
+from bench_matrix.measure.timing import LoopSettings, latency_window, time_calls
+from bench_matrix.phases import phase
 from bench_matrix.scenarios.base import Loaded, Outcome
+from bench_matrix.scenarios.timed import E2E, THROUGHPUT
 from bench_matrix.tensors import bind, resize, take
 
 LATENCY_INPUTS = 16
-LIMITS = Limits()  # interference above these re-measures a timed phase, then flags the cell
-# stored raw series: the timed phase and the key of its durations (ns) in that phase's result ("" = the result)
-SAMPLED = {"latency_ms": ("latency", ""), "latency_ms_e2e": ("latency_e2e", ""),
-           "batch_ms": ("throughput", "batch_ns")}
+LIMITS = Limits()  # a window with interference above these is dropped and taken again in a later round
 
 
 class NonFiniteOutputs(Exception):
     """The cell's outputs hold NaN or Inf: a failure, never a result."""
 
 
-def run(loaded: Loaded) -> Outcome:
-    """Time at batch 1 and throughput holding the machine's timing slot, record peak memory, then evaluate the
-    outputs; the raw latencies come back packed."""
+@dataclass(frozen=True)
+class Timer:
+    """A loaded cell's timed calls: for each kind of window, the call, its inputs and the samples a call
+    carries (1, or the throughput batch)."""
+
+    calls: dict[str, tuple[Callable[[Any], Any], list[Any], int]]
+
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        return tuple(self.calls)
+
+    def window(self, kind: str, seconds: float) -> Window:
+        """Time one window of `kind` now, with the interference during it."""
+        call, inputs, samples = self.calls[kind]
+        sampler = Sampler()
+        durations_ns = latency_window(call, inputs, seconds, sampler)
+        interference = sampler.stop()
+        return Window(kind, durations_ns / 1e6, samples, interference.problem(LIMITS), interference.as_dict())
+
+
+def timer(loaded: Loaded) -> Timer:
+    """The cell's inputs prepared for the session (batch 1 from the test split, and the throughput batch),
+    and every kind of window warmed up once (settings.warmup_iterations and warmup_s)."""
     job, session, settings = loaded.job, loaded.session, loaded.job.settings
     few, _ = data.load_split(job.data.directory, "test", job.data.preprocess, job.layout,
                              max(LATENCY_INPUTS, settings.batch_size))
     few = bind(few, job.source.inputs)
     hosts = [take(few, slice(i, i + 1)) for i in range(min(LATENCY_INPUTS, len(next(iter(few.values())))))]
-    singles = [session.prepare(h) for h in hosts]
-    batch = session.prepare(resize(few, settings.batch_size))
-    cell = job.cell
-    with timing_slot(f"{job.workspace.root} · {cell.model} · {cell.label}", on_wait=waiting) as window:
-        phase("measure")
-        phases = timed_phases(session, singles, hosts, batch, settings, loaded.on_gpu)
-    timing = {**_timing_metrics(phases), "timing_window": window.as_dict(), "cpu_affinity": loaded.cpus}
+    calls = {LATENCY: (session.execute, [session.prepare(h) for h in hosts], 1)}
+    if loaded.on_gpu:  # end to end: from host arrays, both copies and fetch inside the clock
+        calls[E2E] = (session.predict, hosts, 1)
+    calls[THROUGHPUT] = (session.execute, [session.prepare(resize(few, settings.batch_size))],
+                         settings.batch_size)
+    phase("warm-up")
+    warm = LoopSettings(settings.warmup_iterations, settings.warmup_s, 1, 0.0, settings.warmup_s)
+    for call, inputs, _ in calls.values():
+        time_calls(call, inputs, warm)
+    return Timer(calls)
+
+
+def run(loaded: Loaded) -> Outcome:
+    """What the cell's record holds besides its timed figures: size, accuracy, memory, load and the
+    session's facts."""
+    job, session, settings = loaded.job, loaded.session, loaded.job.settings
     peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     phase("evaluate")
     accuracy, outputs = _evaluate(job, session)
     converted, manifest = job.converted, job.converted.manifest
     metrics = {**artifact_size(converted.model, converted.directory / "size.json"),
-               "params": manifest["params"], **accuracy, "outputs_sha256": outputs_digest(outputs), **timing,
-               **_gpu_metrics(loaded.gpu_memory), "batch_size": settings.batch_size,
+               "params": manifest["params"], **accuracy, "outputs_sha256": outputs_digest(outputs),
+               "cpu_affinity": loaded.cpus, **_gpu_metrics(loaded.gpu_memory),
+               "batch_size": settings.batch_size,
                "peak_rss_mb": round(peak_rss_mb, 1), "convert_s": manifest["convert_s"],
                "load_s": loaded.load_s,
                "threads": settings.threads, "artifact_cached": converted.cached, "session": session.info(),
                "test_samples": int(len(outputs[0])), **_finetune_metrics(job.finetune, manifest["convert_s"])}
     if manifest.get("calibration"):  # how many calibration samples were asked for and used
         metrics["calibration"] = manifest["calibration"]
-    return Outcome(metrics, _packed(phases))
+    return Outcome(metrics)
 
 
 def _evaluate(job: MeasureJob, session: Any) -> tuple[dict[str, Any], list[np.ndarray]]:
@@ -89,37 +111,6 @@ def _gpu_metrics(gpu_memory: GpuMemory | None) -> dict[str, Any]:
     if gpu_memory is None:
         return {}
     return {"gpu_name": hardware.gpus()[0].name if hardware.gpus() else None, **gpu_memory.peak()}
-
-
-def timed_phases(session: Any, singles: list[Any], hosts: list[Any], batch: Any, settings: Settings,
-                  on_gpu: bool) -> dict[str, Phase[Any]]:
-    """Latency at batch 1 (and end to end on a GPU), then throughput; each re-measured while disturbed."""
-    loop = LoopSettings(settings.warmup_iterations, settings.warmup_s, settings.min_iterations,
-                        settings.min_time_s, settings.max_time_s, settings.ci_rel_width)
-    phases: dict[str, Phase[Any]] = {"latency": steady_time_calls(session.execute, singles, loop, LIMITS)}
-    if on_gpu:  # end to end: from host arrays, both copies and fetch inside the clock
-        phases["latency_e2e"] = steady_time_calls(session.predict, hosts, loop, LIMITS)
-    phases["throughput"] = steady_throughput(session.execute, batch, settings.batch_size,
-                                             settings.throughput_time_s, LIMITS)
-    return phases
-
-
-def _timing_metrics(phases: dict[str, Phase[Any]]) -> dict[str, Any]:
-    """The latency statistics (with their confidence intervals), throughput and the interference record."""
-    latency = phases["latency"]
-    timing = {"latency_ms": latency_summary(latency.result),
-              "latency_stability": round(drift(latency.result), 4), "latency_attempts": len(latency.attempts),
-              **{k: v for k, v in phases["throughput"].result.items() if k != "batch_ns"},
-              "interference": interference_record(phases, LIMITS)}
-    if "latency_e2e" in phases:
-        timing["latency_ms_e2e"] = latency_summary(phases["latency_e2e"].result)
-    return timing
-
-
-def _packed(phases: dict[str, Phase[Any]]) -> dict[str, bytes]:
-    """The kept raw durations of each sampled series, packed (stats.pack_samples)."""
-    return {name: pack_samples(phases[timed].result[key] if key else phases[timed].result)
-            for name, (timed, key) in SAMPLED.items() if timed in phases}
 
 
 def _reference(job: MeasureJob) -> list[np.ndarray] | None:

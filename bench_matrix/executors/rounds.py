@@ -1,0 +1,91 @@
+"""A rounds job on this machine (docs/metrics.md §5): each cell's session loaded in its own process, the
+sessions timed in interleaved rounds under the machine's timing lock (the scheduler owns the clock), then
+each evaluated; the timed figures come from the rounds."""
+
+from __future__ import annotations
+
+import random
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from bench_matrix.executors.sessions import SessionProcess
+from bench_matrix.jobs import RoundsJob
+from bench_matrix.jobs.results import CellMeasured, Measured, MeasuredGroup
+from bench_matrix.measure import env as environment
+from bench_matrix.measure.machine_lock import TimingWindow, timing_slot
+from bench_matrix.measure.schedule import LATENCY, Rounds, RoundsSettings, SessionLost, Timed, measure_groups
+from bench_matrix.measurement import Measurement
+from bench_matrix.scenarios.latency import LIMITS
+from bench_matrix.scenarios.timed import figures
+
+DISTURBED_SHARE = 0.25  # more of a kind's windows disturbed than this marks the cell
+
+
+def rounds_settings(job: RoundsJob) -> RoundsSettings:
+    """The scheduler's settings from the matrix's: the model's budget is its cells' share each."""
+    settings = job.cells[0].settings
+    return RoundsSettings(min_rounds=settings.min_rounds, budget_s=settings.timing_budget_s * len(job.cells),
+                          target=settings.ci_target, disturbed_share=DISTURBED_SHARE,
+                          window_s=settings.window_s)
+
+
+def measure_in_rounds(job: RoundsJob, workdir: Path, logs: Path, on_phase: Callable[[str], None]
+                      ) -> MeasuredGroup:
+    """Open, time in rounds and finish the job's cells (sessions' logs under `logs`); each cell's result."""
+    by_key = {cell.cell.key: cell for cell in job.cells}
+    log_of = {cell.cell.key: logs / name for cell, name in zip(job.cells, job.logs)}
+    finished: dict[str, Measured | SessionLost] = {}
+    opened: dict[str, SessionProcess] = {}
+    windows: list[TimingWindow] = []
+
+    def open_session(key: str) -> SessionProcess:
+        on_phase(f"loading {by_key[key].cell.label}")
+        cell = by_key[key]
+        opened[key] = SessionProcess(cell, workdir, log_of[key], cell.settings.timeout_s)
+        return opened[key]
+
+    def close(key: str, session: SessionProcess) -> None:
+        on_phase(f"evaluating {by_key[key].cell.label}")
+        try:
+            finished[key] = session.finish()
+        except SessionLost as lost:
+            finished[key] = lost
+        finally:
+            session.close()
+
+    settings = rounds_settings(job)
+    rounds = Rounds(settings, random.Random(), hold=lambda: _slot(job, windows, on_phase),
+                    on_round=lambda n: on_phase(f"round {n + 1}"))
+    memory_mb = job.cells[0].settings.memory_share * environment.available_memory_mb()
+    timed = measure_groups(list(by_key), job.baseline, open_session, close, memory_mb, rounds)
+    base = timed.get(job.baseline) if job.baseline else None
+    window = {"waited_s": round(sum(w.waited_s for w in windows), 3), "rounds": rounds.number,
+              "rounds_s": round(sum((w.end or w.start) - w.start for w in windows), 3),
+              "held": [[w.start, w.end] for w in windows]}
+    return MeasuredGroup(tuple(_result(key, timed[key], base, finished.get(key), opened.get(key), settings,
+                                       window) for key in by_key))
+
+
+@contextmanager
+def _slot(job: RoundsJob, windows: list[TimingWindow], on_phase: Callable[[str], None]) -> Iterator[None]:
+    """The machine's timing slot for one group's rounds, its window kept for the records."""
+    cell = job.cells[0]
+    holder = f"{cell.workspace.root} · {cell.cell.model} · {len(job.cells)} cells in rounds"
+    with timing_slot(holder, on_wait=lambda message: on_phase(f"waiting: {message}")) as window:
+        windows.append(window)
+        yield
+
+
+def _result(key: str, timed: Timed, base: Timed | None, done: Measured | SessionLost | None,
+            session: SessionProcess | None, settings: RoundsSettings, window: dict) -> CellMeasured:
+    """The cell's measurement: its timed figures first, then what its session measured; or why it failed."""
+    user_error = bool(session and session.user_error)
+    if timed.failed or isinstance(done, SessionLost) or done is None:
+        return CellMeasured(key, error=timed.failed or str(done or "not measured"), user_error=user_error)
+    if not timed.series(LATENCY):
+        return CellMeasured(key, error="no window was timed (its rounds stopped first)")
+    timing = figures(timed, base, settings, LIMITS)
+    fields = {**timing.fields, "timing_window": window, **done.metrics.to_json()}
+    return CellMeasured(key, Measured(Measurement.from_json(fields), {**timing.samples, **done.samples},
+                                      done.env))

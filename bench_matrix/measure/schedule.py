@@ -1,0 +1,208 @@
+"""The rounds scheduler (docs/metrics.md §5): the harness owns the clock. A model's loaded sessions are timed
+in short windows, round by round, each round visiting every cell once in a fresh random order, until every
+cell's p50 and speed-up intervals are narrow enough or the time budget is spent; as many sessions are alive
+at once as fit the memory budget, the baseline in every group."""
+
+from __future__ import annotations
+
+import random
+import time
+from collections.abc import Callable, Mapping
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from bench_matrix.measure.rounds import Interval, medians_by_round, p50_interval, speedup
+
+LATENCY = "latency"  # the kind of window whose intervals decide when the rounds stop
+
+
+@dataclass(frozen=True)
+class Window:
+    """One cell's timed window of one kind: each call's (or batch's) duration in ms, the samples each call
+    carries, and why other work disturbed it (None: it did not)."""
+
+    kind: str
+    durations_ms: np.ndarray
+    samples: int = 1
+    disturbed: str | None = None
+    interference: dict[str, object] = field(default_factory=dict)
+
+
+class SessionLost(Exception):
+    """A session's process crashed, hung or failed: its cell fails with this reason, the others go on."""
+
+
+class Session(Protocol):
+    """A loaded cell, kept alive between windows (its own process)."""
+
+    kinds: tuple[str, ...]  # the kinds of window it times, each round in this order
+    rss_mb: float  # its resident memory once loaded and warmed up
+
+    def window(self, kind: str) -> Window:
+        """Time one window of `kind` now (a short warm-up first); SessionLost when the session is gone."""
+
+
+@dataclass(frozen=True)
+class RoundsSettings:
+    """When rounds stop: every interval within ±`target` after `min_rounds`, or `budget_s` spent (or
+    `max_rounds`); a cell whose windows were disturbed more than `disturbed_share` of the time is marked;
+    each window's length (the sessions time it)."""
+
+    min_rounds: int = 5
+    max_rounds: int = 200
+    budget_s: float = 60.0
+    target: float = 0.02
+    disturbed_share: float = 0.25
+    window_s: float = 0.2
+
+
+@dataclass
+class Timed:
+    """What the rounds gave one cell: its windows by kind and round (clean ones kept, disturbed ones apart),
+    why it failed, and how its rounds ended."""
+
+    kept: dict[str, dict[int, Window]] = field(default_factory=dict)
+    dropped: dict[str, dict[int, Window]] = field(default_factory=dict)
+    failed: str | None = None
+    stop: str = ""  # "width": every interval narrow enough; "budget": time ran out; "rounds": max_rounds
+
+    def add(self, number: int, window: Window) -> None:
+        (self.kept if window.disturbed is None else self.dropped).setdefault(window.kind, {})[number] = window
+
+    def series(self, kind: str, clean: bool = False) -> dict[int, np.ndarray]:
+        """The windows a figure is computed from: the clean ones, or (unless `clean`) every one when fewer
+        than 2 were clean."""
+        kept = self.kept.get(kind, {})
+        chosen = kept if clean or len(kept) >= 2 else {**self.dropped.get(kind, {}), **kept}
+        return {r: w.durations_ms for r, w in sorted(chosen.items())}
+
+    def disturbed_share(self) -> float:
+        windows = sum(len(v) for v in self.kept.values()) + sum(len(v) for v in self.dropped.values())
+        return sum(len(v) for v in self.dropped.values()) / windows if windows else 0.0
+
+
+def paired(baseline: Timed | None, timed: Timed, clean: bool = False) -> Interval | None:
+    """The cell's speed-up against the baseline, paired by round."""
+    if baseline is None:
+        return None
+    return speedup(*(medians_by_round(t.series(LATENCY, clean)) for t in (baseline, timed)))
+
+
+def narrow(timed: Timed, baseline: Timed | None, settings: RoundsSettings) -> bool:
+    """Whether the cell's p50 interval (and speed-up interval, beside a baseline) is within the target after
+    the minimum number of clean rounds."""
+    p50 = p50_interval(timed.series(LATENCY, clean=True))
+    if p50 is None or p50.rounds < settings.min_rounds or p50.half_width > settings.target:
+        return False
+    if baseline is None or baseline is timed:
+        return True
+    ratio = paired(baseline, timed, clean=True)
+    return ratio is not None and ratio.rounds >= settings.min_rounds and ratio.half_width <= settings.target
+
+
+class Rounds:
+    """Runs the rounds of a model's cells; `rng` orders each round, `clock` (seconds) measures the budget,
+    `hold` is held around each group's rounds (the machine's timing lock), `on_round` hears each round
+    begin."""
+
+    def __init__(self, settings: RoundsSettings, rng: random.Random | None = None,
+                 clock: Callable[[], float] = time.monotonic,
+                 hold: Callable[[], AbstractContextManager] = nullcontext,
+                 on_round: Callable[[int], None] = lambda number: None):
+        self.settings, self.rng, self.clock = settings, rng or random.Random(), clock
+        self.hold, self.on_round = hold, on_round
+        self.number = 0  # rounds run so far, over every group (the baseline's rounds are numbered so)
+        self.orders: list[tuple[str, ...]] = []
+
+    def run(self, sessions: Mapping[str, Session], timed: dict[str, Timed], baseline: str | None,
+            budget_s: float) -> str:
+        """Rounds over `sessions` until they are narrow enough or `budget_s` is spent; why they stopped. A
+        lost session's cell fails and leaves the rounds."""
+        with self.hold():
+            live = dict(sessions)
+            start, count = self.clock(), 0
+            while live:
+                self._round(live, timed)
+                count += 1
+                if not live:
+                    break
+                base = timed.get(baseline) if baseline in live else None
+                if all(narrow(timed[key], base, self.settings) for key in live):
+                    return "width"
+                if count >= self.settings.max_rounds:
+                    return "rounds"
+                if self.clock() - start >= budget_s and count >= 2:
+                    return "budget"
+            return "failed"
+
+    def _round(self, live: dict[str, Session], timed: dict[str, Timed]) -> None:
+        order = tuple(self.rng.sample(sorted(live), len(live)))
+        self.orders.append(order)
+        self.on_round(self.number)
+        for key in order:
+            try:
+                for kind in live[key].kinds:
+                    timed[key].add(self.number, live[key].window(kind))
+            except SessionLost as lost:
+                timed[key].failed = str(lost)
+                del live[key]
+        self.number += 1
+
+
+def measure_groups(keys: list[str], baseline: str | None, open_session: Callable[[str], Session],
+                   close: Callable[[str, Session], None], memory_mb: float,
+                   rounds: Rounds) -> dict[str, Timed]:
+    """Time `keys` in groups that fit `memory_mb` of resident memory (the baseline, opened first, in every
+    group); each group's share of the budget is its share of the cells. `close` ends each session once its
+    rounds are done (the baseline's after the last group)."""
+    timed = {key: Timed() for key in keys}
+    base = _opened(baseline, open_session, timed) if baseline in timed else None
+    waiting = [key for key in keys if key != baseline]
+    share = rounds.settings.budget_s / max(len(waiting), 1)
+    stop, largest = "failed", 0.0
+    while True:
+        group = {baseline: base} if base is not None else {}
+        while waiting and (len(group) < 1 + (base is not None) or _rss(group) + largest <= memory_mb):
+            key = waiting.pop(0)
+            if session := _opened(key, open_session, timed):
+                group[key], largest = session, max(largest, session.rss_mb)
+        members = [key for key in group if key != baseline]
+        if members or (base is not None and not waiting and not _timed(timed[baseline])):
+            stop = rounds.run(group, timed, baseline if base is not None else None,
+                              share * max(len(members), 1))
+        for key in members:
+            _end(key, group[key], timed, stop, close)
+        if base is not None and timed[baseline].failed:
+            _end(baseline, base, timed, stop, close)
+            base = None
+        if not waiting:
+            break
+    if base is not None:
+        _end(baseline, base, timed, stop, close)
+    return timed
+
+
+def _timed(cell: Timed) -> bool:
+    return bool(cell.kept or cell.dropped)
+
+
+def _rss(group: Mapping[str, Session]) -> float:
+    return sum(session.rss_mb for session in group.values())
+
+
+def _opened(key: str, open_session: Callable[[str], Session], timed: dict[str, Timed]) -> Session | None:
+    try:
+        return open_session(key)
+    except SessionLost as lost:
+        timed[key].failed = str(lost)
+        return None
+
+
+def _end(key: str, session: Session, timed: dict[str, Timed], stop: str, close: Callable[[str, Session], None]
+         ) -> None:
+    if not timed[key].stop:
+        timed[key].stop = stop
+    close(key, session)

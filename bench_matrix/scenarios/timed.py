@@ -1,0 +1,108 @@
+"""The latency scenario's timed figures, made where the rounds ran (the executor's process) from a cell's
+windows: pooled percentiles, intervals from the rounds, the paired speed-up, and why a figure is marked
+(docs/metrics.md §5)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import asdict
+from typing import Any
+
+import numpy as np
+
+from bench_matrix.measure.interference import Limits
+from bench_matrix.measure.rounds import p50_interval, rate_interval
+from bench_matrix.measure.schedule import LATENCY, RoundsSettings, Timed, paired
+from bench_matrix.measure.stats import latency_summary, pack_samples
+from bench_matrix.scenarios.base import Outcome
+
+E2E, THROUGHPUT = "latency_e2e", "throughput"
+SERIES = {LATENCY: "latency_ms", E2E: "latency_ms_e2e"}  # latency kinds -> their record field
+SAMPLED = {LATENCY: "latency_ms", E2E: "latency_ms_e2e", THROUGHPUT: "batch_ms"}  # kind -> stored raw series
+
+
+def figures(timed: Timed, baseline: Timed | None, settings: RoundsSettings, limits: Limits) -> Outcome:
+    """The cell's timed record fields and raw series from its rounds (`baseline`: the baseline cell's, for
+    the paired speed-up; None for the baseline itself or without one)."""
+    fields: dict[str, Any] = {}
+    for kind, name in SERIES.items():
+        if timed.series(kind):
+            fields[name] = _latency(timed.series(kind))
+    fields.update(_throughput(timed))
+    ratio = paired(baseline, timed) if baseline is not None and baseline is not timed else None
+    if ratio is not None:
+        fields["speedup"] = _rounded(ratio.as_dict())
+    widths = [i.half_width for i in (p50_interval(timed.series(LATENCY)), ratio) if i is not None]
+    fields["rounds"] = {"rounds": len(timed.series(LATENCY)), "stop": timed.stop, "target": settings.target,
+                        "reached": round(max(widths), 6) if widths else None, "window_s": settings.window_s}
+    fields["interference"] = _interference(timed, settings, limits, widths)
+    samples = {SAMPLED[kind]: pack_samples(np.concatenate(list(timed.series(kind).values())) * 1e6)
+               for kind in SAMPLED if timed.series(kind)}
+    return Outcome(fields, samples)
+
+
+def _latency(series: dict[int, np.ndarray]) -> dict[str, Any]:
+    """Percentiles of every kept window pooled; the p50's interval from the spread of its per-round
+    medians."""
+    summary = latency_summary(np.concatenate(list(series.values())) * 1e6)
+    interval = p50_interval(series)
+    if interval is not None:
+        summary.update(p50_ci=[interval.low, interval.high],
+                       p50_ci_rel=(interval.high - interval.low) / summary["p50"])
+    return {**summary, "rounds": len(series)}
+
+
+def _throughput(timed: Timed) -> dict[str, Any]:
+    """Samples per second over every kept throughput window, with the interval of the per-round rates."""
+    all_windows = {**timed.dropped.get(THROUGHPUT, {}), **timed.kept.get(THROUGHPUT, {})}
+    windows = {r: w for r, w in all_windows.items() if r in timed.series(THROUGHPUT)}
+    if not windows:
+        return {}
+    batches = sum(len(w.durations_ms) for w in windows.values())
+    seconds = sum(float(w.durations_ms.sum()) for w in windows.values()) / 1e3
+    samples = sum(w.samples * len(w.durations_ms) for w in windows.values())
+    rates = {r: w.samples * len(w.durations_ms) / (float(w.durations_ms.sum()) / 1e3)
+             for r, w in windows.items()}
+    interval = rate_interval(rates, samples, seconds)
+    found: dict[str, Any] = {"throughput_sps": samples / seconds, "throughput_batches": batches}
+    if interval is not None:
+        found["throughput_ci"] = [interval.low, interval.high]
+    return found
+
+
+def _interference(timed: Timed, settings: RoundsSettings, limits: Limits,
+                  widths: list[float]) -> dict[str, Any]:
+    """Flagged when more than `settings.disturbed_share` of a kind's windows were disturbed; each kind's
+    windows, the dropped ones, and why a figure is marked (disturbed, or its interval wider than the
+    target)."""
+    phases = {}
+    for kind in (*SERIES, THROUGHPUT):
+        kept, dropped = timed.kept.get(kind, {}), timed.dropped.get(kind, {})
+        if not kept and not dropped:
+            continue
+        total = len(kept) + len(dropped)
+        why = Counter(w.disturbed for w in dropped.values()).most_common(1)
+        disturbed = (f"{len(dropped)} of {total} windows disturbed (limit {settings.disturbed_share:.0%}): "
+                     f"{why[0][0]}" if len(dropped) > settings.disturbed_share * total else None)
+        phases[kind] = {"windows": total, "dropped": len(dropped), "disturbed": disturbed,
+                        "wide": _wide(timed, settings, widths) if kind == LATENCY else None}
+    reasons = [f"{kind}: {phase['disturbed']}" for kind, phase in phases.items() if phase["disturbed"]]
+    return {"flagged": bool(reasons), "reason": " | ".join(reasons) or None, "limits": asdict(limits),
+            "phases": phases}
+
+
+def _wide(timed: Timed, settings: RoundsSettings, widths: list[float]) -> str | None:
+    """Why the latency figures are marked when their intervals stayed wider than the target."""
+    reached = max(widths) if widths else None
+    if reached is not None and reached <= settings.target:
+        return None
+    width = f"±{reached:.1%}" if reached is not None else "no interval"
+    ended = {"budget": "the time budget was spent", "rounds": "the most rounds were run"}.get(timed.stop,
+                                                                                              timed.stop)
+    return (f"interval {width} after {len(timed.series(LATENCY))} rounds (target ±{settings.target:.0%}; "
+            f"{ended})")
+
+
+def _rounded(found: dict[str, Any]) -> dict[str, Any]:
+    return {k: [round(x, 6) for x in v] if isinstance(v, list) else v for k, v in found.items()}
+
