@@ -69,8 +69,7 @@ def covered(first: CellRecord, second: CellRecord) -> bool:
 
 def rounds_s(records: list[CellRecord]) -> float:
     """Seconds spent in rounds: each model's once."""
-    by_model = {r.cell.model: (r.metrics.others.get("timing_window") or {}).get("rounds_s", 0.0)
-                for r in records}
+    by_model = {r.cell.model: (r.metrics.setup.timing_window or {}).get("rounds_s", 0.0) for r in records}
     return sum(by_model.values())
 
 

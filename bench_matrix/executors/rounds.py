@@ -33,38 +33,56 @@ def rounds_settings(job: RoundsJob) -> RoundsSettings:
 def measure_in_rounds(job: RoundsJob, workdir: Path, logs: Path, on_phase: Callable[[str], None]
                       ) -> MeasuredGroup:
     """Open, time in rounds and finish the job's cells (sessions' logs under `logs`); each cell's result."""
-    by_key = {cell.cell.key: cell for cell in job.cells}
-    log_of = {cell.cell.key: logs / name for cell, name in zip(job.cells, job.logs)}
-    finished: dict[str, Measured | SessionLost] = {}
-    opened: dict[str, SessionProcess] = {}
+    sessions = _Sessions(job, workdir, logs, on_phase)
     windows: list[TimingWindow] = []
-
-    def open_session(key: str) -> SessionProcess:
-        on_phase(f"loading {by_key[key].cell.label}")
-        cell = by_key[key]
-        opened[key] = SessionProcess(cell, workdir, log_of[key], cell.settings.timeout_s)
-        return opened[key]
-
-    def close(key: str, session: SessionProcess) -> None:
-        on_phase(f"evaluating {by_key[key].cell.label}")
-        try:
-            finished[key] = session.finish()
-        except SessionLost as lost:
-            finished[key] = lost
-        finally:
-            session.close()
-
     settings = rounds_settings(job)
     rounds = Rounds(settings, random.Random(), hold=lambda: _slot(job, windows, on_phase),
                     on_round=lambda n: on_phase(f"round {n + 1}"))
     memory_mb = job.cells[0].settings.memory_share * environment.available_memory_mb()
-    timed = measure_groups(list(by_key), job.baseline, open_session, close, memory_mb, rounds)
+    try:
+        timed = measure_groups(list(sessions.jobs), job.baseline, sessions.open, sessions.close, memory_mb,
+                               rounds)
+    except BaseException:  # Ctrl-C or any error here: never leave a session measuring
+        sessions.kill()
+        raise
     base = timed.get(job.baseline) if job.baseline else None
     window = {"waited_s": round(sum(w.waited_s for w in windows), 3), "rounds": rounds.number,
               "rounds_s": round(sum((w.end or w.start) - w.start for w in windows), 3),
               "held": [[w.start, w.end] for w in windows]}
-    return MeasuredGroup(tuple(_result(key, timed[key], base, finished.get(key), opened.get(key), settings,
-                                       window) for key in by_key))
+    return MeasuredGroup(tuple(_result(key, timed[key], base, sessions, settings, window)
+                               for key in sessions.jobs))
+
+
+class _Sessions:
+    """The job's sessions: each opened when the scheduler asks, finished (evaluated, its scenarios run) and
+    closed once its rounds are done."""
+
+    def __init__(self, job: RoundsJob, workdir: Path, logs: Path, on_phase: Callable[[str], None]):
+        self.jobs = {cell.cell.key: cell for cell in job.cells}
+        self.logs = {cell.cell.key: logs / name for cell, name in zip(job.cells, job.logs)}
+        self.workdir, self.on_phase = workdir, on_phase
+        self.opened: dict[str, SessionProcess] = {}
+        self.finished: dict[str, Measured | SessionLost] = {}
+
+    def open(self, key: str) -> SessionProcess:
+        job = self.jobs[key]
+        self.on_phase(f"loading {job.cell.label}")
+        self.opened[key] = SessionProcess(job, self.workdir, self.logs[key], job.settings.timeout_s)
+        self.opened[key].ready()
+        return self.opened[key]
+
+    def close(self, key: str, session: SessionProcess) -> None:
+        self.on_phase(f"evaluating {self.jobs[key].cell.label}")
+        try:
+            self.finished[key] = session.finish()
+        except SessionLost as lost:
+            self.finished[key] = lost
+        finally:
+            session.close()
+
+    def kill(self) -> None:
+        for session in self.opened.values():
+            session.kill()
 
 
 @contextmanager
@@ -77,9 +95,10 @@ def _slot(job: RoundsJob, windows: list[TimingWindow], on_phase: Callable[[str],
         yield
 
 
-def _result(key: str, timed: Timed, base: Timed | None, done: Measured | SessionLost | None,
-            session: SessionProcess | None, settings: RoundsSettings, window: dict) -> CellMeasured:
+def _result(key: str, timed: Timed, base: Timed | None, sessions: _Sessions, settings: RoundsSettings,
+            window: dict) -> CellMeasured:
     """The cell's measurement: its timed figures first, then what its session measured; or why it failed."""
+    done, session = sessions.finished.get(key), sessions.opened.get(key)
     user_error = bool(session and session.user_error)
     if timed.failed or isinstance(done, SessionLost) or done is None:
         return CellMeasured(key, error=timed.failed or str(done or "not measured"), user_error=user_error)

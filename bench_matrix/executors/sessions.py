@@ -27,7 +27,8 @@ WINDOW_LIMIT_S = 120.0  # a window that has not come back by then (plus 20 × it
 
 
 class SessionProcess:
-    """A measure job's session in its own process; `window` and `finish` talk to it, `close` ends it."""
+    """A measure job's session in its own process, started; `ready` waits for its load, `window` and `finish`
+    talk to it, `close` ends it (`kill` at once)."""
 
     def __init__(self, job: MeasureJob, workdir: Path, log: Path, timeout_s: float):
         self.job, self.log, self.timeout_s = job, log, timeout_s
@@ -42,9 +43,18 @@ class SessionProcess:
                                                   job.settings.threads, {SESSION_FD: str(theirs.fileno())},
                                                   (theirs.fileno(),))
         theirs.close()
-        ready = self._receive(timeout_s, "loading")
-        self.kinds: tuple[str, ...] = tuple(ready["kinds"])
-        self.rss_mb: float = float(ready["rss_mb"])
+        self.kinds: tuple[str, ...] = ()
+        self.rss_mb = 0.0
+
+    def ready(self) -> None:
+        """Wait until the session is loaded and warmed up (its kinds of window, its memory); SessionLost, the
+        process ended, when it fails."""
+        try:
+            ready = self._receive(self.timeout_s, "loading")
+        except SessionLost:
+            self.close()
+            raise
+        self.kinds, self.rss_mb = tuple(ready["kinds"]), float(ready["rss_mb"])
 
     def window(self, kind: str) -> Window:
         seconds = self.job.settings.window_s
@@ -58,6 +68,10 @@ class SessionProcess:
         failure."""
         self._send({"do": "finish"})
         return from_json(Measured, self._receive(self.timeout_s, "finishing")["value"])
+
+    def kill(self) -> None:
+        kill_group(self.proc)
+        self.close()
 
     def close(self) -> None:
         """End the process (at once when it has not ended by itself) and remove its job file."""

@@ -16,6 +16,9 @@ T95 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228,
        2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045, 2.042)
 
 
+RERUN = math.sqrt(2)  # a rerun's figure has the same uncertainty as this one: their difference sqrt(2) times
+
+
 def t95(df: int) -> float:
     """Student's t two-sided 95 % quantile for `df` >= 1 degrees of freedom."""
     return T95[df - 1] if df <= len(T95) else 1.96 + 2.5 / df
@@ -40,13 +43,14 @@ class Interval:
                 "rounds": self.rounds}
 
 
-def log_interval(value: float, per_round: Iterable[float]) -> Interval | None:
+def log_interval(value: float, per_round: Iterable[float], spread: float = 1.0) -> Interval | None:
     """`value` with the 95 % interval of a t-interval on the logs of its per-round estimates (ratios and
-    times are multiplicative), shifted to `value`; None with fewer than 2 rounds or a non-positive figure."""
+    times are multiplicative), `spread` times as wide, shifted to `value`; None with fewer than 2 rounds or a
+    non-positive figure."""
     logs = np.log(np.asarray([x for x in per_round], dtype=np.float64)) if value > 0 else np.array([])
     if logs.size < 2 or not np.all(np.isfinite(logs)):
         return None
-    half = t95(logs.size - 1) * float(logs.std(ddof=1)) / math.sqrt(logs.size)
+    half = spread * t95(logs.size - 1) * float(logs.std(ddof=1)) / math.sqrt(logs.size)
     return Interval(value, value * math.exp(-half), value * math.exp(half), int(logs.size))
 
 
@@ -56,11 +60,18 @@ def medians_by_round(series: Mapping[int, np.ndarray]) -> dict[int, float]:
 
 
 def p50_interval(series: Mapping[int, np.ndarray]) -> Interval | None:
-    """The pooled median of every round's window with the interval of the per-round medians."""
+    """The pooled median of every round's window with the interval a rerun's would fall in: that of the
+    per-round medians, RERUN times as wide."""
     if not series:
         return None
     pooled = float(np.median(np.concatenate([np.asarray(v, dtype=np.float64) for v in series.values()])))
-    return log_interval(pooled, medians_by_round(series).values())
+    return log_interval(pooled, medians_by_round(series).values(), RERUN)
+
+
+def level_width(p50: Interval) -> float:
+    """How precisely the run knows its own p50: the half-width of `p50_interval`'s interval ÷ RERUN (what the
+    rounds' target applies to)."""
+    return p50.half_width / RERUN
 
 
 def speedup(baseline: Mapping[int, float], cell: Mapping[int, float]) -> Interval | None:
@@ -74,6 +85,6 @@ def speedup(baseline: Mapping[int, float], cell: Mapping[int, float]) -> Interva
 
 
 def rate_interval(rates: Mapping[int, float], samples: float, seconds: float) -> Interval | None:
-    """A throughput: `samples` ÷ `seconds` over every kept window, with the interval of the per-round
-    rates."""
-    return log_interval(samples / seconds, rates.values()) if seconds > 0 else None
+    """A throughput: `samples` ÷ `seconds` over every kept window, with the interval a rerun's would fall in
+    (from the per-round rates, as for the p50)."""
+    return log_interval(samples / seconds, rates.values(), RERUN) if seconds > 0 else None

@@ -14,7 +14,7 @@ from typing import Protocol
 
 import numpy as np
 
-from bench_matrix.measure.rounds import Interval, medians_by_round, p50_interval, speedup
+from bench_matrix.measure.rounds import Interval, level_width, medians_by_round, p50_interval, speedup
 
 LATENCY = "latency"  # the kind of window whose intervals decide when the rounds stop
 
@@ -95,7 +95,7 @@ def narrow(timed: Timed, baseline: Timed | None, settings: RoundsSettings) -> bo
     """Whether the cell's p50 interval (and speed-up interval, beside a baseline) is within the target after
     the minimum number of clean rounds."""
     p50 = p50_interval(timed.series(LATENCY, clean=True))
-    if p50 is None or p50.rounds < settings.min_rounds or p50.half_width > settings.target:
+    if p50 is None or p50.rounds < settings.min_rounds or level_width(p50) > settings.target:
         return False
     if baseline is None or baseline is timed:
         return True

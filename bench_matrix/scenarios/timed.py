@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from bench_matrix.measure.interference import Limits
-from bench_matrix.measure.rounds import p50_interval, rate_interval
+from bench_matrix.measure.rounds import level_width, p50_interval, rate_interval
 from bench_matrix.measure.schedule import LATENCY, RoundsSettings, Timed, paired
 from bench_matrix.measure.stats import latency_summary, pack_samples
 from bench_matrix.scenarios.base import Outcome
@@ -32,7 +32,8 @@ def figures(timed: Timed, baseline: Timed | None, settings: RoundsSettings, limi
     ratio = paired(baseline, timed) if baseline is not None and baseline is not timed else None
     if ratio is not None:
         fields["speedup"] = _rounded(ratio.as_dict())
-    widths = [i.half_width for i in (p50_interval(timed.series(LATENCY)), ratio) if i is not None]
+    p50 = p50_interval(timed.series(LATENCY))
+    widths = [w for w in (p50 and level_width(p50), ratio and ratio.half_width) if w is not None]
     fields["rounds"] = {"rounds": len(timed.series(LATENCY)), "stop": timed.stop, "target": settings.target,
                         "reached": round(max(widths), 6) if widths else None, "window_s": settings.window_s}
     fields["interference"] = _interference(timed, settings, limits, widths)
@@ -99,7 +100,7 @@ def _wide(timed: Timed, settings: RoundsSettings, widths: list[float]) -> str | 
     width = f"±{reached:.1%}" if reached is not None else "no interval"
     ended = {"budget": "the time budget was spent", "rounds": "the most rounds were run"}.get(timed.stop,
                                                                                               timed.stop)
-    return (f"interval {width} after {len(timed.series(LATENCY))} rounds (target ±{settings.target:.0%}; "
+    return (f"known to {width} after {len(timed.series(LATENCY))} rounds (target ±{settings.target:.0%}; "
             f"{ended})")
 
 
