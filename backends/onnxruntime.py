@@ -38,6 +38,7 @@ class OnnxRuntimeBackend(Backend):
     """Exports PyTorch and Keras models to ONNX (or takes ONNX files as given) and runs them with ONNX Runtime."""
 
     name = "onnxruntime"
+    revision = 2  # 2: the quantisation pre-pass falls back where it fails, and says what it applied
     description = ("ONNX Runtime: CPU, CUDA and TensorRT providers; fp16 conversion, int8 QDQ quantisation (CPU) "
                    "and TensorRT int8 from a calibration table")
     supports = (Support(FRAMEWORKS, ("none",), ("fp32", "fp16"), ("cpu", "cuda", "tensorrt")),
@@ -78,9 +79,10 @@ class OnnxRuntimeBackend(Backend):
                 onnx.save(model, str(out))
                 quantisation, engines = _tensorrt(request, step, feeds, batch, Path(tmp))
             elif step.kind in ("ptq_dynamic", "ptq_static"):
-                prepared = _pre_process(model, Path(tmp))
+                prepared, pre_processed = _pre_process(model, Path(tmp))
                 quantisation = (_quantise_dynamic(prepared, step, out) if step.kind == "ptq_dynamic"
                                 else _quantise_static(prepared, step, request, feeds, batch))
+                quantisation["pre_process"] = pre_processed
             elif step.kind in QAT_KINDS:  # the export already holds the learned int8 ranges as QDQ pairs
                 onnx.save(model, str(out))
                 quantisation = {"format": "QDQ", "ranges": "learned in quantisation-aware training",
@@ -125,22 +127,29 @@ class OrtSession(Session):
                 "threads": self._session.get_session_options().intra_op_num_threads}
 
 
-def _pre_process(model: "onnx.ModelProto", tmp: Path) -> Path:
-    """The model after ONNX Runtime's recommended pre-quantisation pass (shape inference, optimisation); with
-    ONNX's own shape inference where ONNX Runtime's symbolic one gives up (e.g. on tf2onnx's int64 gathers)."""
+def _pre_process(model: "onnx.ModelProto", tmp: Path) -> tuple[Path, dict[str, str]]:
+    """The model after ONNX Runtime's recommended pre-quantisation pass (shape inference, optimisation), and
+    what was applied. Optional steps: where ONNX Runtime's symbolic shape inference fails (tf2onnx's int64
+    gathers; it asserts on transformer graphs), ONNX's own is used; where that fails too, none."""
     import onnx
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
     fp32, prepared = tmp / "fp32.onnx", tmp / "prepared.onnx"
     onnx.save(model, str(fp32))
+    failed: list[str] = []
     with contextlib.chdir(tmp):  # where it gives up, it saves sym_shape_infer_temp.onnx in the working directory
-        try:
-            quant_pre_process(str(fp32), str(prepared))
-        except Exception as exc:  # it raises a bare Exception("Incomplete symbolic shape inference")
-            if "symbolic shape inference" not in str(exc):
-                raise
-            quant_pre_process(str(fp32), str(prepared), skip_symbolic_shape=True)
-    return prepared
+        for how, skip in (("full", False), ("without symbolic shape inference", True)):
+            try:
+                quant_pre_process(str(fp32), str(prepared), skip_symbolic_shape=skip)
+                return prepared, {"applied": how, **({"failed": " | ".join(failed)} if failed else {})}
+            except Exception as exc:  # any: the pass is optional
+                failed.append(f"{how}: {type(exc).__name__}: {_first_line(exc)}")
+    return fp32, {"applied": "none", "failed": " | ".join(failed)}
+
+
+def _first_line(exc: Exception) -> str:
+    lines = str(exc).strip().splitlines()
+    return lines[0] if lines else "(no message)"
 
 
 def _quantise_dynamic(model: Path, step: StrategySpec, out: Path) -> dict[str, Any]:
