@@ -22,13 +22,14 @@ def test_crash_without_result_reports_signal_and_log_tail(tmp_path):
     outcome = run_in_process(AbortJob(), tmp_path / "jobs", tmp_path / "log.txt", timeout_s=60)
     assert not outcome.ok
     assert "killed by signal SIGABRT" in outcome.error
-    assert "about to abort" in outcome.error  # the log tail is part of the reason
+    assert "about to abort" in outcome.error and "\n" not in outcome.error  # the log's last line
 
 
 def test_exception_is_reported_with_its_location(tmp_path):
     outcome = run_in_process(FailJob(), tmp_path / "jobs", tmp_path / "log.txt", timeout_s=60)
-    assert not outcome.ok and outcome.error.startswith("ValueError: bad model")
-    assert "launcher_jobs.py" in outcome.error
+    assert not outcome.ok and outcome.error.startswith("launcher_jobs: ValueError: bad model")  # where it rose
+    assert "\n" not in outcome.error and outcome.error.endswith(f"(traceback: {tmp_path / 'log.txt'})")
+    assert 'File "' in (tmp_path / "log.txt").read_text()  # the traceback is in the log
 
 
 def test_timeout_kills_the_child(tmp_path):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import re
 import select
 import signal
 import subprocess
@@ -20,14 +21,13 @@ from bench_matrix.errors import UserError
 from bench_matrix.phases import PHASE_FD, WAITING_MARK
 from bench_matrix.executors.codec import from_json
 
-TAIL_LINES = 12
 LONGEST_WAIT_S = 1e9  # ~31 years: a longer (or infinite) limit waits as long; keeps every timer representable
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "TF_NUM_INTRAOP_THREADS")
 
 
 @dataclass(frozen=True)
 class Outcome:
-    """How a child ended: its job's typed result, or why it failed (error text, log tail)."""
+    """How a child ended: its job's typed result, or why it failed (one line; the traceback is in the log)."""
 
     result: Any = None
     error: str | None = None
@@ -105,9 +105,9 @@ def _outcome(job: Any, proc: subprocess.Popen, result_path: Path, log: Path, las
             return Outcome(result=from_json(type(job).result, result["value"]))
         if result.get("user_error"):  # the user's mistake: the message alone says what to fix
             return Outcome(error=result["error"], user_error=True)
-        return Outcome(error=error_reason(result["error"], result.get("traceback", "")))
+        return Outcome(error=error_reason(result["error"], result.get("traceback", ""), log))
     return Outcome(error=f"the process died ({describe_exit(proc.returncode)}) in phase '{last_phase}'; "
-                         f"last lines of {log}:\n{log_tail(log)}")
+                         f"the last line of {log}: {last_line(log)}")
 
 
 class _Deadline:
@@ -193,13 +193,27 @@ def describe_exit(code: int | None) -> str:
     return f"exit code {code}"
 
 
-def error_reason(error: str, trace: str) -> str:
-    """The error line plus the innermost traceback lines that locate it."""
-    lines = [line for line in trace.strip().splitlines() if line.strip()]
-    where = "\n".join(lines[-TAIL_LINES:-1]) if len(lines) > 1 else ""
-    return f"{error}\n{where}".strip()
+def error_reason(error: str, trace: str, log: Path) -> str:
+    """One line: the library the error was raised in (its innermost frame's package), the error's first line,
+    and where the traceback is."""
+    frames = re.findall(r'File "([^"]+)", line \d+', trace)
+    lines = error.strip().splitlines()
+    first = lines[0] if lines else "(no message)"
+    where = f"{_library(Path(frames[-1]))}: " if frames else ""
+    return f"{where}{first} (traceback: {log})"
 
 
-def log_tail(log: Path) -> str:
-    lines = log.read_text(errors="replace").splitlines()
-    return "\n".join(lines[-TAIL_LINES:])
+def _library(path: Path) -> str:
+    """The installed package a source file belongs to (torch, onnxruntime, ...), or its module's name."""
+    parts = path.parts
+    for folder in ("site-packages", "dist-packages"):
+        if folder in parts[:-1]:
+            return parts[parts.index(folder) + 1].removesuffix(".py")
+    if "bench_matrix" in parts:
+        return "bench-matrix"
+    return f"{path.stem} backend" if "backends" in parts else path.stem
+
+
+def last_line(log: Path) -> str:
+    lines = [line.strip() for line in log.read_text(errors="replace").splitlines() if line.strip()]
+    return lines[-1] if lines else "(empty)"

@@ -18,7 +18,7 @@ import numpy as np
 
 from bench_matrix.executors.child import SESSION_FD
 from bench_matrix.executors.codec import from_json
-from bench_matrix.executors.process import describe_exit, error_reason, kill_group, log_tail, start_child
+from bench_matrix.executors.process import describe_exit, error_reason, kill_group, last_line, start_child
 from bench_matrix.jobs import MeasureJob
 from bench_matrix.jobs.results import Measured
 from bench_matrix.measure.schedule import SessionLost, Window
@@ -93,7 +93,7 @@ class SessionProcess:
         if not message["ok"]:
             self.user_error = bool(message.get("user_error"))
             text = message["error"] if self.user_error else error_reason(message["error"],
-                                                                         message.get("traceback", ""))
+                                                                         message.get("traceback", ""), self.log)
             raise SessionLost(text)
         return message
 
@@ -114,5 +114,5 @@ class SessionProcess:
         except subprocess.TimeoutExpired:
             kill_group(self.proc)
             code = self.proc.returncode
-        return SessionLost(f"the process died ({describe_exit(code)}) {doing}; last lines of {self.log}:\n"
-                           f"{log_tail(self.log)}")
+        return SessionLost(f"the process died ({describe_exit(code)}) {doing}; the last line of {self.log}: "
+                           f"{last_line(self.log)}")
