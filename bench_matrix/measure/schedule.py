@@ -72,12 +72,16 @@ class Timed:
     def add(self, number: int, window: Window) -> None:
         (self.kept if window.disturbed is None else self.dropped).setdefault(window.kind, {})[number] = window
 
-    def series(self, kind: str, clean: bool = False) -> dict[int, np.ndarray]:
-        """The windows a figure is computed from: the clean ones, or (unless `clean`) every one when fewer
-        than 2 were clean."""
+    def windows(self, kind: str, clean: bool = False) -> dict[int, Window]:
+        """The windows a figure is computed from, by round: the clean ones, or (unless `clean`) every one when
+        fewer than 2 were clean."""
         kept = self.kept.get(kind, {})
         chosen = kept if clean or len(kept) >= 2 else {**self.dropped.get(kind, {}), **kept}
-        return {r: w.durations_ms for r, w in sorted(chosen.items())}
+        return dict(sorted(chosen.items()))
+
+    def series(self, kind: str, clean: bool = False) -> dict[int, np.ndarray]:
+        """Those windows' durations in ms, by round."""
+        return {r: w.durations_ms for r, w in self.windows(kind, clean).items()}
 
     def disturbed_share(self) -> float:
         windows = sum(len(v) for v in self.kept.values()) + sum(len(v) for v in self.dropped.values())

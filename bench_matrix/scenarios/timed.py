@@ -12,7 +12,7 @@ import numpy as np
 
 from bench_matrix.measure.interference import Limits
 from bench_matrix.measure.rounds import level_width, p50_interval, rate_interval
-from bench_matrix.measure.schedule import LATENCY, RoundsSettings, Timed, paired
+from bench_matrix.measure.schedule import LATENCY, RoundsSettings, Timed, Window, paired
 from bench_matrix.measure.stats import latency_summary, pack_samples
 from bench_matrix.scenarios.base import Outcome
 
@@ -24,27 +24,25 @@ SAMPLED = {LATENCY: "latency_ms", E2E: "latency_ms_e2e", THROUGHPUT: "batch_ms"}
 def figures(timed: Timed, baseline: Timed | None, settings: RoundsSettings, limits: Limits) -> Outcome:
     """The cell's timed record fields and raw series from its rounds (`baseline`: the baseline cell's, for
     the paired speed-up; None for the baseline itself or without one)."""
-    fields: dict[str, Any] = {}
-    for kind, name in SERIES.items():
-        if timed.series(kind):
-            fields[name] = _latency(timed.series(kind))
-    fields.update(_throughput(timed))
+    series = {kind: found for kind in SAMPLED if (found := timed.series(kind))}
+    fields: dict[str, Any] = {name: _latency(series[kind]) for kind, name in SERIES.items() if kind in series}
+    fields.update(_throughput(timed.windows(THROUGHPUT)))
     ratio = paired(baseline, timed) if baseline is not None and baseline is not timed else None
     if ratio is not None:
         fields["speedup"] = _rounded(ratio.as_dict())
-    p50 = p50_interval(timed.series(LATENCY))
+    p50 = p50_interval(series.get(LATENCY, {}))
     widths = [w for w in (p50 and level_width(p50), ratio and ratio.half_width) if w is not None]
-    fields["rounds"] = {"rounds": len(timed.series(LATENCY)), "stop": timed.stop, "target": settings.target,
+    fields["rounds"] = {"rounds": len(series.get(LATENCY, {})), "stop": timed.stop, "target": settings.target,
                         "reached": round(max(widths), 6) if widths else None, "window_s": settings.window_s}
     fields["interference"] = _interference(timed, settings, limits, widths)
-    samples = {SAMPLED[kind]: pack_samples(np.concatenate(list(timed.series(kind).values())) * 1e6)
-               for kind in SAMPLED if timed.series(kind)}
+    samples = {SAMPLED[kind]: pack_samples(np.concatenate(list(found.values())) * 1e6)
+               for kind, found in series.items()}
     return Outcome(fields, samples)
 
 
 def _latency(series: dict[int, np.ndarray]) -> dict[str, Any]:
-    """Percentiles of every kept window pooled; the p50's interval from the spread of its per-round
-    medians."""
+    """Percentiles of every kept window pooled; the interval a rerun's p50 falls in, from the spread of the
+    per-round medians."""
     summary = latency_summary(np.concatenate(list(series.values())) * 1e6)
     interval = p50_interval(series)
     if interval is not None:
@@ -53,10 +51,8 @@ def _latency(series: dict[int, np.ndarray]) -> dict[str, Any]:
     return {**summary, "rounds": len(series)}
 
 
-def _throughput(timed: Timed) -> dict[str, Any]:
-    """Samples per second over every kept throughput window, with the interval of the per-round rates."""
-    all_windows = {**timed.dropped.get(THROUGHPUT, {}), **timed.kept.get(THROUGHPUT, {})}
-    windows = {r: w for r, w in all_windows.items() if r in timed.series(THROUGHPUT)}
+def _throughput(windows: dict[int, Window]) -> dict[str, Any]:
+    """Samples per second over the throughput windows, with the interval of the per-round rates."""
     if not windows:
         return {}
     batches = sum(len(w.durations_ms) for w in windows.values())

@@ -1,0 +1,339 @@
+"""The rounds scheduler (bench_matrix.measure.schedule) on fake sessions that run on a simulated machine
+(tests/rounds_sim.py): orders, stopping, lost sessions, groups by memory, disturbed windows."""
+
+from __future__ import annotations
+
+import random
+from contextlib import contextmanager
+
+import numpy as np
+import pytest
+
+from bench_matrix.measure.rounds import p50_interval
+from bench_matrix.measure.schedule import (LATENCY, Rounds, RoundsSettings, SessionLost, Timed, Window,
+                                           measure_groups, narrow, paired)
+from rounds_sim import NEVER_NARROW, FakeSession, Machine, cells, round_keys, rounds_on
+
+
+# --- the scheduler ------------------------------------------------------------------------------------------
+
+
+def test_every_round_visits_every_cell_once_in_a_fresh_random_order():
+    machine = Machine(seed=0)
+    names = ["a", "b", "c", "d", "e"]
+    sessions = cells(machine, names, noise=0.3, kinds=(LATENCY, "throughput"))
+    timed = {name: Timed() for name in names}
+    rounds = rounds_on(machine, max_rounds=10, target=NEVER_NARROW, budget_s=1e9)
+    assert rounds.run(sessions, timed, "a", budget_s=1e9) == "rounds"
+    assert len(rounds.orders) == 10 and rounds.number == 10
+    assert all(sorted(order) == names for order in rounds.orders)  # each a permutation of the cells
+    assert len(set(rounds.orders)) >= 5  # fresh orders (10 draws out of 120: ~10 distinct), not one reused
+    visited = [cell for cell, kind, _ in machine.log if kind == LATENCY]
+    assert [tuple(visited[i:i + 5]) for i in range(0, 50, 5)] == rounds.orders  # the order recorded is run
+    assert [kind for _, kind, _ in machine.log] == [LATENCY, "throughput"] * 50  # a cell's kinds back to back
+    for name in names:
+        assert set(timed[name].kept[LATENCY]) == set(timed[name].kept["throughput"]) == set(range(10))
+        assert sessions[name].windows == 20
+
+
+def test_the_rounds_order_comes_from_the_rng_given():
+    def orders(seed: int) -> list[tuple[str, ...]]:
+        machine = Machine(seed=0)
+        rounds = rounds_on(machine, seed=seed, max_rounds=6, target=NEVER_NARROW)
+        rounds.run(cells(machine, list("abcd")), {name: Timed() for name in "abcd"}, None, budget_s=1e9)
+        return rounds.orders
+
+    assert orders(7) == orders(7) and orders(7) != orders(8)
+
+
+def test_quiet_cells_stop_on_width_right_after_min_rounds():
+    machine = Machine(seed=1)
+    sessions = cells(machine, ["base", "x", "y"], noise=0.001)
+    timed = {name: Timed() for name in sessions}
+    rounds = rounds_on(machine, min_rounds=5, target=0.02)
+    assert rounds.run(sessions, timed, "base", budget_s=1e9) == "width"
+    assert len(rounds.orders) == 5
+    assert narrow(timed["x"], timed["base"], rounds.settings)
+    assert paired(timed["base"], timed["x"]).half_width < 0.002
+
+
+def test_quiet_cells_without_a_baseline_also_wait_for_min_rounds():
+    machine = Machine(seed=1)
+    rounds = rounds_on(machine, min_rounds=4, target=0.02)
+    assert rounds.run(cells(machine, ["x", "y"]), {"x": Timed(), "y": Timed()}, None, budget_s=1e9) == "width"
+    assert len(rounds.orders) == 4
+
+
+def test_each_session_times_its_own_kinds():
+    machine = Machine(seed=1)
+    sessions = {"x": FakeSession(machine, "x", kinds=(LATENCY, "throughput")), "y": FakeSession(machine, "y")}
+    timed = {"x": Timed(), "y": Timed()}
+    rounds_on(machine, max_rounds=3, target=NEVER_NARROW).run(sessions, timed, None, budget_s=1e9)
+    assert sorted(timed["x"].kept) == [LATENCY, "throughput"] and list(timed["y"].kept) == [LATENCY]
+    assert [kind for cell, kind, _ in machine.log if cell == "x"] == [LATENCY, "throughput"] * 3
+
+
+def test_noisy_cells_stop_on_the_budget_of_the_fake_clock():
+    machine = Machine(seed=2, step_s=0.0625)  # every window takes 1/16 s of simulated time
+    sessions = cells(machine, ["base", "x", "y"], noise=0.5, calls=5)
+    timed = {name: Timed() for name in sessions}
+    rounds = rounds_on(machine, min_rounds=5, target=0.02, budget_s=1e9)
+    assert rounds.run(sessions, timed, "base", budget_s=3.0) == "budget"
+    assert len(rounds.orders) == 16  # 3 windows = 0.1875 s a round: 15 rounds make 2.81 s, 16 make 3.0 s
+    assert machine.now == 3.0
+    assert p50_interval(timed["x"].series(LATENCY)).half_width > 0.02  # the reason they were not narrow
+
+
+def test_the_budget_leaves_at_least_two_rounds():
+    machine = Machine(seed=3, step_s=1.0)
+    sessions = cells(machine, ["base", "x"], noise=0.5)
+    rounds = rounds_on(machine, target=NEVER_NARROW)
+    assert rounds.run(sessions, {name: Timed() for name in sessions}, "base", budget_s=0.01) == "budget"
+    assert len(rounds.orders) == 2
+
+
+def test_noisy_cells_stop_on_max_rounds():
+    machine = Machine(seed=4)
+    sessions = cells(machine, ["base", "x"], noise=0.5)
+    timed = {name: Timed() for name in sessions}
+    rounds = rounds_on(machine, max_rounds=7, target=0.02)
+    assert rounds.run(sessions, timed, "base", budget_s=1e9) == "rounds"
+    assert len(rounds.orders) == 7 and round_keys(timed["x"]) == set(range(7))
+
+
+def test_a_lost_session_fails_only_its_cell():
+    machine = Machine(seed=5)
+    sessions = cells(machine, ["base", "a", "b"], noise=0.3)
+    sessions["lost"] = FakeSession(machine, "lost", noise=0.3, crash_at=3)  # its window in round 3
+    timed = {name: Timed() for name in sessions}
+    rounds = rounds_on(machine, max_rounds=8, target=NEVER_NARROW)
+    assert rounds.run(sessions, timed, "base", budget_s=1e9) == "rounds"
+    assert timed["lost"].failed == "worker exited with signal 9"
+    assert round_keys(timed["lost"]) == {0, 1, 2} and sessions["lost"].windows == 4  # not asked again
+    assert ["lost" in order for order in rounds.orders] == [True] * 4 + [False] * 4
+    for name in ["base", "a", "b"]:
+        assert timed[name].failed is None and round_keys(timed[name]) == set(range(8))
+    assert paired(timed["base"], timed["a"]).rounds == 8
+
+
+def test_rounds_end_failed_when_every_session_is_lost():
+    machine = Machine(seed=6)
+    sessions = {name: FakeSession(machine, name, crash_at=1) for name in ["base", "x"]}
+    timed = {name: Timed() for name in sessions}
+    assert rounds_on(machine, target=NEVER_NARROW).run(sessions, timed, "base", budget_s=1e9) == "failed"
+    assert all(t.failed and round_keys(t) == {0} for t in timed.values())
+
+
+# --- groups by memory ---------------------------------------------------------------------------------------
+
+
+class Opener:
+    """open_session / close for measure_groups: records what is alive, the peak resident memory, the order
+    sessions open and close in; opening a name in `fail_open` raises SessionLost."""
+
+    def __init__(self, machine: Machine, fail_open: tuple[str, ...] = (), **session):
+        self.machine, self.fail_open, self.session = machine, fail_open, session
+        self.alive: dict[str, FakeSession] = {}
+        self.opened: list[str] = []
+        self.closed: list[str] = []
+        self.peak_mb = 0.0
+        self.closed_at: dict[str, int] = {}  # len(machine.log) when each session closed
+
+    def open(self, name: str) -> FakeSession:
+        if name in self.fail_open:
+            raise SessionLost(f"{name}: model failed to load")
+        assert name not in self.alive
+        self.opened.append(name)
+        self.alive[name] = FakeSession(self.machine, name, **self.session)
+        self.peak_mb = max(self.peak_mb, sum(s.rss_mb for s in self.alive.values()))
+        return self.alive[name]
+
+    def close(self, name: str, session: FakeSession) -> None:
+        assert self.alive.pop(name) is session
+        self.closed.append(name)
+        self.closed_at[name] = len(self.machine.log)
+
+
+def test_groups_fit_memory_with_the_baseline_in_every_group():
+    machine = Machine(seed=7)
+    opener = Opener(machine, noise=0.001)
+    keys = ["base", "c1", "c2", "c3", "c4", "c5"]
+    rounds = rounds_on(machine, min_rounds=3, target=0.02)
+    timed = measure_groups(keys, "base", opener.open, opener.close, memory_mb=300, rounds=rounds)
+    # groups {base, c1, c2}, {base, c3, c4}, {base, c5}: 3 quiet rounds each, numbered on across groups
+    assert rounds.number == 9
+    assert round_keys(timed["base"]) == set(range(9))
+    assert round_keys(timed["c1"]) == round_keys(timed["c2"]) == {0, 1, 2}
+    assert round_keys(timed["c3"]) == round_keys(timed["c4"]) == {3, 4, 5}
+    assert round_keys(timed["c5"]) == {6, 7, 8}
+    assert [sorted(order) for order in rounds.orders[::3]] == [["base", "c1", "c2"], ["base", "c3", "c4"],
+                                                                ["base", "c5"]]
+    assert opener.opened == keys and opener.closed == ["c1", "c2", "c3", "c4", "c5", "base"]
+    assert opener.peak_mb == 300 and not opener.alive
+    for key in keys:  # closed once its rounds were done, and never timed after
+        windows = [i for i, (cell, _, _) in enumerate(machine.log) if cell == key]
+        assert windows[-1] < opener.closed_at[key]
+    assert opener.closed_at["c2"] < min(i for i, (cell, _, _) in enumerate(machine.log) if cell == "c3")
+    assert all(t.failed is None and t.stop == "width" for t in timed.values())
+    assert all(paired(timed["base"], timed[key]).rounds == 3 for key in keys[1:])  # paired within its group
+
+
+def test_a_session_that_fails_to_open_fails_only_its_cell():
+    machine = Machine(seed=8)
+    opener = Opener(machine, fail_open=("c3",), noise=0.001)
+    keys = ["base", "c1", "c2", "c3", "c4", "c5"]
+    rounds = rounds_on(machine, min_rounds=3, target=0.02)
+    timed = measure_groups(keys, "base", opener.open, opener.close, memory_mb=300, rounds=rounds)
+    assert timed["c3"].failed == "c3: model failed to load" and round_keys(timed["c3"]) == set()
+    assert "c3" not in opener.opened and "c3" not in opener.closed
+    assert opener.closed == ["c1", "c2", "c4", "c5", "base"] and not opener.alive
+    assert round_keys(timed["c4"]) == round_keys(timed["c5"]) == {3, 4, 5}  # c4 takes c3's place
+    assert all(timed[key].failed is None for key in keys if key != "c3")
+
+
+def test_a_baseline_whose_cells_all_fail_to_open_is_timed_alone():
+    machine = Machine(seed=10)
+    opener = Opener(machine, fail_open=("c1", "c2"), noise=0.001)
+    rounds = rounds_on(machine, min_rounds=3, target=0.02)
+    timed = measure_groups(["base", "c1", "c2"], "base", opener.open, opener.close, memory_mb=300,
+                           rounds=rounds)
+    assert round_keys(timed["base"]) == {0, 1, 2} and timed["base"].stop == "width"
+    assert opener.closed == ["base"] and timed["c1"].failed and timed["c2"].failed
+
+
+def test_a_group_whose_cells_all_fail_to_open_spends_no_rounds():
+    machine = Machine(seed=11)
+    opener = Opener(machine, fail_open=("c1", "c2"), noise=0.001)
+    rounds = rounds_on(machine, min_rounds=3, target=0.02)
+    timed = measure_groups(["base", "c1", "c2", "c3"], "base", opener.open, opener.close, memory_mb=200,
+                           rounds=rounds)
+    assert rounds.number == 3 and [sorted(o) for o in rounds.orders] == [["base", "c3"]] * 3
+    assert round_keys(timed["c3"]) == round_keys(timed["base"]) == {0, 1, 2}
+
+
+def test_a_baseline_that_fails_to_open_leaves_the_cells_grouped_by_memory_alone():
+    machine = Machine(seed=9)
+    opener = Opener(machine, fail_open=("base",), noise=0.001)
+    rounds = rounds_on(machine, min_rounds=3, target=0.02)
+    timed = measure_groups(["base", "c1", "c2", "c3"], "base", opener.open, opener.close, memory_mb=200,
+                           rounds=rounds)
+    assert timed["base"].failed == "base: model failed to load"
+    assert [sorted(order) for order in rounds.orders[::3]] == [["c1", "c2"], ["c3"]]
+    assert opener.closed == ["c1", "c2", "c3"] and opener.peak_mb == 200
+
+
+def test_each_group_gets_its_share_of_the_budget():
+    machine = Machine(seed=10, step_s=0.0625)
+    opener = Opener(machine, noise=0.5, calls=5)
+    rounds = rounds_on(machine, target=NEVER_NARROW, budget_s=6.0)  # 2 s for each of the 3 cells
+    timed = measure_groups(["base", "c1", "c2", "c3"], "base", opener.open, opener.close, memory_mb=300,
+                           rounds=rounds)
+    # {base, c1, c2}: 4 s at 0.1875 s a round -> 22 rounds; {base, c3}: 2 s at 0.125 s a round -> 16 rounds
+    assert len(round_keys(timed["c1"])) == 22 and len(round_keys(timed["c3"])) == 16
+    assert len(round_keys(timed["base"])) == 38
+    assert all(t.stop == "budget" for t in timed.values())
+
+
+def test_a_session_lost_in_its_rounds_is_closed_once_and_the_rest_go_on():
+    machine = Machine(seed=11)
+    opener = Opener(machine, noise=0.001)
+    original_open = opener.open
+
+    def open_with_a_crash(name: str) -> FakeSession:
+        session = original_open(name)
+        session.crash_at = 1 if name == "c2" else None
+        return session
+
+    rounds = rounds_on(machine, min_rounds=3, target=0.02)
+    timed = measure_groups(["base", "c1", "c2", "c3"], "base", open_with_a_crash, opener.close, memory_mb=300,
+                           rounds=rounds)
+    assert timed["c2"].failed and round_keys(timed["c2"]) == {0}
+    assert opener.closed == ["c1", "c2", "c3", "base"] and not opener.alive
+    assert round_keys(timed["c1"]) == {0, 1, 2} and round_keys(timed["base"]) == set(range(6))
+
+
+def test_rounds_are_timed_under_hold_and_announced_as_they_begin():
+    machine = Machine(seed=12)
+    opener = Opener(machine, noise=0.001)
+    held: list[tuple[int, int]] = []  # (len(machine.log) when taken, when released), one per group
+    begun: list[tuple[int, int]] = []  # (round number, len(machine.log) when it began)
+
+    @contextmanager
+    def timing_lock():
+        taken = len(machine.log)
+        yield
+        held.append((taken, len(machine.log)))
+
+    rounds = Rounds(RoundsSettings(min_rounds=3, target=0.02), rng=random.Random(1), clock=machine.clock,
+                    hold=timing_lock, on_round=lambda number: begun.append((number, len(machine.log))))
+    measure_groups(["base", "c1", "c2", "c3", "c4"], "base", opener.open, opener.close, memory_mb=300,
+                   rounds=rounds)
+    assert held == [(0, 9), (9, 18)]  # two groups of 3 cells, 3 rounds each: every window inside a hold
+    assert begun == [(number, 3 * number) for number in range(6)]
+
+
+def test_groups_never_hold_more_resident_memory_than_the_budget():
+    machine = Machine(seed=12)
+    opener = Opener(machine, noise=0.001)
+    rounds = rounds_on(machine, min_rounds=3, target=0.02)
+    measure_groups(["base", "c1", "c2", "c3"], "base", opener.open, opener.close, memory_mb=250,
+                   rounds=rounds)
+    assert opener.peak_mb <= 250  # base + 1 cell (200 MB) fit; base + 2 cells (300 MB) do not
+
+
+# --- disturbed windows --------------------------------------------------------------------------------------
+
+
+def window(ms: float, disturbed: str | None = None, kind: str = LATENCY) -> Window:
+    return Window(kind, durations_ms=np.full(5, ms), disturbed=disturbed)
+
+
+STEAL = "CPU steal 9% (limit 3%)"
+
+
+def test_disturbed_windows_are_kept_apart_while_two_clean_rounds_exist():
+    timed = Timed()
+    for number in range(6):
+        disturbed = number in (1, 4)
+        timed.add(number, window(40.0 if disturbed else 10.0 + number, STEAL if disturbed else None))
+        timed.add(number, window(3.0, kind="throughput"))
+    assert set(timed.dropped[LATENCY]) == {1, 4} and set(timed.kept[LATENCY]) == {0, 2, 3, 5}
+    assert timed.dropped[LATENCY][1].disturbed == STEAL and "throughput" not in timed.dropped
+    assert list(timed.series(LATENCY)) == [0, 2, 3, 5]
+    assert timed.series(LATENCY) == timed.series(LATENCY, clean=True)
+    assert p50_interval(timed.series(LATENCY)).value == 12.5  # median of 10, 12, 13, 15: the 40s are left out
+    assert timed.disturbed_share() == pytest.approx(2 / 12)  # 2 of the 12 windows, every kind counted
+
+
+def test_series_falls_back_to_every_window_when_fewer_than_two_are_clean():
+    timed = Timed()
+    for number in range(4):
+        timed.add(number, window(10.0 + number, None if number == 2 else STEAL))
+    assert list(timed.series(LATENCY)) == [0, 1, 2, 3]  # all of them, in round order
+    assert list(timed.series(LATENCY, clean=True)) == [2]
+    assert timed.disturbed_share() == 0.75
+    assert Timed().series(LATENCY) == {} and Timed().disturbed_share() == 0.0
+
+
+def test_disturbed_rounds_do_not_count_towards_stopping():
+    machine = Machine(seed=13)
+    sessions = cells(machine, ["base"], noise=0.001)
+    sessions["x"] = FakeSession(machine, "x", noise=0.001, disturbed_at=(1, 3))
+    timed = {name: Timed() for name in sessions}
+    rounds = rounds_on(machine, min_rounds=5, target=0.02)
+    assert rounds.run(sessions, timed, "base", budget_s=1e9) == "width"
+    assert len(rounds.orders) == 7  # x's 5th clean round is round 6
+    assert set(timed["x"].dropped[LATENCY]) == {1, 3} and timed["x"].disturbed_share() == pytest.approx(2 / 7)
+
+    machine = Machine(seed=15)  # pairs need 5 rounds clean in both: base's 0 and 2 are out, x's 1 and 3
+    sessions = {"base": FakeSession(machine, "base", disturbed_at=(0, 2)),
+                "x": FakeSession(machine, "x", disturbed_at=(1, 3))}
+    timed = {name: Timed() for name in sessions}
+    rounds = rounds_on(machine, min_rounds=5, target=0.02)
+    assert rounds.run(sessions, timed, "base", budget_s=1e9) == "width"
+    assert len(rounds.orders) == 9 and paired(timed["base"], timed["x"], clean=True).rounds == 5
+
+    machine = Machine(seed=14)
+    always = {"x": FakeSession(machine, "x", noise=0.001, disturbed_at=tuple(range(100)))}
+    rounds = rounds_on(machine, min_rounds=5, max_rounds=12, target=0.02)
+    assert rounds.run(always, {"x": Timed()}, None, budget_s=1e9) == "rounds"
