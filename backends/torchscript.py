@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from bench_matrix.plugin import ConvertRequest, Session, StrategySpec, Support, count, take
+from bench_matrix.plugin import ConvertRequest, Session, StrategySpec, Support, count, fx_prepare, take
 
 from ._common import batches, calibration_data, static_options_reason
 from ._torch import TorchBackend, TorchSession, as_tensors, example_tensors, flat_module, pin_threads, place, \
@@ -94,11 +94,7 @@ def _quantise(module: "torch.nn.Module", step: StrategySpec,
     mapping = tq.get_default_qconfig_mapping(engine).set_global(tq.QConfig(activation=activation, weight=weight))
     data = calibration_data(request, step)
     example = as_tensors(take(data, slice(0, 1)), "cpu", torch.float32)
-    try:
-        prepared = prepare_fx(module, mapping, example_inputs=example)
-    except Exception as exc:  # symbolic tracing fails on data-dependent Python control flow
-        raise ValueError(f"FX graph mode cannot trace {request.source.name} for static quantisation: "
-                         f"{type(exc).__name__}: {exc}") from exc
+    prepared = fx_prepare(prepare_fx, module, mapping, example, f"model {request.source.name}")
     with torch.no_grad():
         for batch in batches(data):
             prepared(*as_tensors(batch, "cpu", torch.float32))

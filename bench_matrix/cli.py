@@ -1,4 +1,5 @@
-"""The `bench-matrix` command: run, plan, report, backends, schema; runs, compare and merge (cli_history)."""
+"""The `bench-matrix` command: run, plan, report, backends, schema; runs, compare and merge (cli_history);
+init and run of a model file (cli_auto)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ import sys
 from pathlib import Path
 
 from bench_matrix import __version__
+from bench_matrix.cli_auto import add_init, add_model_options
 from bench_matrix.cli_history import add_commands
+from bench_matrix.cli_verdict import add_report_options, add_require
 from bench_matrix.errors import MatrixError, UserError
 from bench_matrix.workspace import DEFAULT_ROOT
 
@@ -51,7 +54,8 @@ def _parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     run = sub.add_parser("run", help="run the matrix (finished cells are kept; a re-run resumes)")
-    run.add_argument("matrix", type=Path)
+    run.add_argument("matrix", type=Path, help="a matrix .yaml, or a model file (.onnx, .pt, .pt2, .keras, "
+                                               ".h5) or SavedModel folder: its automatic matrix")
     run.add_argument("--results", type=Path, help="SQLite results file (default: WORKSPACE/results.sqlite)")
     run.add_argument("--force", action="store_true", help="re-run cells that already have a stored result")
     run.add_argument("--label", help="a name for this run in the store's history, e.g. a git commit "
@@ -62,6 +66,8 @@ def _parser() -> argparse.ArgumentParser:
                                        "default: $RAY_ADDRESS, else a Ray started on this machine)")
     run.add_argument("--shard", help="I/N: run only shard I of N of the chosen cells (one per machine of a "
                                      "batch scheduler; `merge` their stores)")
+    add_require(run)
+    add_model_options(run)
     _filters(run)
     run.set_defaults(handler=_run)
 
@@ -85,6 +91,7 @@ def _parser() -> argparse.ArgumentParser:
     group = report.add_argument_group("filters (repeat an option or separate values with commas)")
     for key in VIEW_KEYS:
         group.add_argument(f"--{key}", action="append", metavar=key.upper(), help=f"only records of this {key}")
+    add_report_options(report)
     report.set_defaults(handler=_report)
 
     backends = sub.add_parser("backends", help="installed backends, what they support, what this machine can run")
@@ -96,6 +103,7 @@ def _parser() -> argparse.ArgumentParser:
                         help="the built-in schema only (docs/matrix.schema.json), without installed plugins")
     schema.set_defaults(handler=_schema)
     add_commands(sub)
+    add_init(sub)
     return parser
 
 
@@ -168,16 +176,20 @@ def _load(args: argparse.Namespace):
 
 
 def _run(args: argparse.Namespace, console) -> int:
+    from bench_matrix.cli_auto import matrix_of
+    from bench_matrix.cli_verdict import print_run_verdict, remember
     from bench_matrix.executors import open_executor
     from bench_matrix.executors.local import probe
+    from bench_matrix.matrix.require import parse_require
     from bench_matrix.plan import resolve
     from bench_matrix.runner import Runner
     from bench_matrix.selection import Shard
     from bench_matrix.store import ResultStore
 
     shard = Shard.parse(args.shard) if args.shard is not None else Shard()
+    args.matrix = matrix_of(args, console)
     matrix, ws = _load(args)
-    filters = _selected(args)
+    filters, overrides = _selected(args), parse_require(args.require)
     if args.results is None:
         ws.root.mkdir(parents=True, exist_ok=True)  # checked writable before
     store = ResultStore(args.results or ws.results, label="--results" if args.results else "results file")
@@ -185,6 +197,7 @@ def _run(args: argparse.Namespace, console) -> int:
                   f"{args.results or ws.results}", highlight=False)
     executor = None
     try:
+        remember(store, matrix)
         connecting = console.status("connecting to the Ray cluster (or starting one here) …")
         with connecting if args.executor == "ray" else contextlib.nullcontext():
             executor = open_executor(args.executor, ws, args.address)
@@ -198,6 +211,7 @@ def _run(args: argparse.Namespace, console) -> int:
     console.print(f"[bold]done:[/] {counts['ok']} ok, {counts['skipped']} skipped, {counts['failed']} failed, "
                   f"{counts['cached']} already stored" + (f"; {invalid} combinations are not valid "
                                                           f"(`bench-matrix plan` says why)" if invalid else ""))
+    print_run_verdict(args.results or ws.results, matrix, overrides, console)
     console.print("Next: [bold]bench-matrix report[/]", highlight=False)
     return 0
 
@@ -214,11 +228,16 @@ def _plan(args: argparse.Namespace, console) -> int:
 
 
 def _report(args: argparse.Namespace, console) -> int:
-    from bench_matrix.report import View, write_report
+    from rich.console import Console
+
+    from bench_matrix.cli_verdict import gate, judging
+    from bench_matrix.report import View, load_judged, write_loaded
 
     results = args.results or args.workspace / "results.sqlite"
-    write_report(results, args.format, args.out, console, View(args.run, _values(args, VIEW_KEYS)))
-    return 0
+    view = View(args.run, _values(args, VIEW_KEYS))
+    loaded = load_judged(results, view, judging(args), with_samples=args.format in ("table", "md", "html"))
+    write_loaded(loaded, args.format, args.out, console)
+    return gate(loaded.report, Console(stderr=True)) if args.check else 0
 
 
 def _backends(args: argparse.Namespace, console) -> int:

@@ -33,6 +33,12 @@ def add_commands(sub: Any) -> None:
                               "repeatable")
     compare.add_argument("--alpha", type=float, default=0.05,
                          help="significance level of the tests on the raw samples (default: %(default)s)")
+    compare.add_argument("--remeasure", action="store_true",
+                         help="time both sides' artifacts again here, interleaved in the same rounds, and "
+                              "judge p50 on their paired ratio: a gate that holds on a busy machine "
+                              "(docs/results.md)")
+    compare.add_argument("--matrix", type=Path, help="with --remeasure: the matrix the cells come from "
+                                                     "(default: the one the new side's records name)")
     compare.add_argument("--format", choices=COMPARE_FORMATS, default="table")
     compare.add_argument("--out", type=Path, help="also write the comparison to this file (Markdown, or JSON "
                                                   "with --format json)")
@@ -81,7 +87,14 @@ def _compare(args: argparse.Namespace, console) -> int:
         raise UserError(f"--alpha {args.alpha}: give a significance level between 0 and 1, such as 0.05")
     thresholds = dict(parse_threshold(text) for text in args.threshold)
     base, new = (side(spec, default_store(args)) for spec in (args.base, args.new))
-    result = compare(base, new, thresholds, args.alpha)
+    twins = None
+    if args.remeasure:
+        from bench_matrix.cli_remeasure import remeasured
+
+        base, new, twins = remeasured(base, new, args.matrix, args.workspace)
+    elif args.matrix:
+        raise UserError("--matrix names the matrix to remeasure from: use it with --remeasure")
+    result = compare(base, new, thresholds, args.alpha, twins=twins)
     if args.format == "json":
         import json
 

@@ -20,7 +20,8 @@ from bench_matrix.image_readers import first_class_image_size, read_class_folder
 from bench_matrix.images import (GEOMETRIC, check_preprocess, geometric, geometric_shape, in_layout,
                                  pixel_scale, to_model_input, value_range)
 from bench_matrix.matrix.spec import DatasetSpec, LabelSpec, Preprocess
-from bench_matrix.tensors import SINGLE, Inputs, TensorSpec, count, random_inputs, specs_to_list
+from bench_matrix.tensors import SINGLE, Inputs, TensorSpec, count, data_names, random_inputs, shape_fits, \
+    specs_to_list
 from bench_matrix.sources.code import module_file
 from bench_matrix.workload.driving import defaults
 from bench_matrix.workspace import Workspace, digest, tree_sha256
@@ -42,9 +43,10 @@ class Raw:
     classes: tuple[str, ...] = ()
 
 
-def fingerprint(spec: DatasetSpec, inputs: Sequence[TensorSpec] | None = None) -> str:
+def fingerprint(spec: DatasetSpec, inputs: Sequence[TensorSpec] | None = None,
+                as_is: Sequence[str] = ()) -> str:
     """Content hash of the dataset: its declaration (paths aside) plus the bytes of its files; for synthetic
-    data, the inputs drawn. A moved checkout keeps its cache."""
+    data, the inputs drawn; the arrays passed as they are. A moved checkout keeps its cache."""
     if spec.kind == "npz":
         require_file(spec.paths[0], "an .npz archive")  # never open a pipe or a directory to hash it
     try:
@@ -54,7 +56,7 @@ def fingerprint(spec: DatasetSpec, inputs: Sequence[TensorSpec] | None = None) -
                         f"every dataset file must be readable") from None
     drawn = specs_to_list(inputs or ()) if spec.kind == "synthetic" else None
     return digest({"spec": {**asdict(spec), "paths": None}, "content": content, "inputs": drawn,
-                   "format": FORMAT})
+                   "format": FORMAT, **({"as_is": sorted(as_is)} if as_is else {})})
 
 
 def _generator(spec: DatasetSpec) -> str:
@@ -72,16 +74,16 @@ def source(spec: DatasetSpec) -> str:
     return ", ".join(map(str, spec.paths)) or f"the builtin dataset {spec.builtin} ({spec.samples} samples)"
 
 
-def prepare(spec: DatasetSpec, workspace: Workspace,
-            inputs: Sequence[TensorSpec] | None = None) -> tuple[Path, dict[str, Any]]:
+def prepare(spec: DatasetSpec, workspace: Workspace, inputs: Sequence[TensorSpec] | None = None,
+            as_is: Sequence[str] = ()) -> tuple[Path, dict[str, Any]]:
     """Build (or reuse) the cached splits; return their directory and summary info. `inputs`: the model's
-    inputs, which synthetic data is drawn for."""
-    out = workspace.datasets(fingerprint(spec, inputs))
+    inputs, which synthetic data is drawn for; `as_is`: arrays passed as they are (model_shaped)."""
+    out = workspace.datasets(fingerprint(spec, inputs, as_is))
     if (out / "info.json").is_file():
         return out, json.loads((out / "info.json").read_text())
-    raw = _read(spec, inputs)
+    raw = _read(spec, inputs, as_is)
     ranges = {name: value_range(raw.inputs[name]) for name in raw.images}
-    check_preprocess(spec.preprocess, raw.inputs, ranges, source(spec))
+    check_preprocess(spec.preprocess, raw.inputs, ranges, source(spec), as_is)
     labels = _labels(raw, spec)
     index = assign_splits(count(raw.inputs), raw.groups, spec.split, spec.seed, source(spec))
     building = out.with_name(f"{out.name}.building-{os.getpid()}")  # this process's, renamed when complete
@@ -155,22 +157,49 @@ def data_inputs(info: dict[str, Any], layout: str) -> tuple[TensorSpec, ...]:
                  else TensorSpec(i["name"], tuple(i["shape"]), i["dtype"]) for i in info["inputs"])
 
 
-def describe(spec: DatasetSpec, layout: str = "nhwc") -> dict[str, TensorSpec] | None:
-    """The dataset's inputs as a model in `layout` would see them, read cheaply (headers only, no array
-    loaded) to find mistakes at plan time; None where that needs reading the data (folders, synthetic)."""
+def describe(spec: DatasetSpec, layout: str = "nhwc",
+             as_is: Sequence[str] = ()) -> dict[str, TensorSpec] | None:
+    """The dataset's inputs as a model in `layout` would see them (`as_is`: arrays passed as they are), read
+    cheaply (headers only, no array loaded) to find mistakes at plan time; None where that needs reading the
+    data (folders, synthetic)."""
+    stored = _stored(spec)
+    if stored is None:
+        return None
+    return {name: TensorSpec(name, shape, str(dtype)) if name in as_is else
+            _as_seen(name, shape, dtype, spec.preprocess, layout) for name, (shape, dtype) in stored.items()}
+
+
+def model_shaped(spec: DatasetSpec, inputs: Sequence[TensorSpec] | None, layout: str) -> tuple[str, ...]:
+    """The float .npz arrays already in their model input's per-sample shape, which reading them as H×W×C
+    images (and laying those out as `layout`) would change: they are passed to the model as they are."""
+    if spec.kind != "npz" or not inputs:
+        return ()
+    stored = _stored(spec) or {}
+    fed = {name: model.shape for name, model in zip(data_names(stored, inputs), inputs)}
+    return tuple(name for name, (shape, dtype) in stored.items() if name in fed
+                 and dtype.kind == "f" and _is_image(shape, dtype) and shape_fits(shape, fed[name])
+                 and not shape_fits(_as_seen(name, shape, dtype, spec.preprocess, layout).shape, fed[name]))
+
+
+def images_read(spec: DatasetSpec, as_is: Sequence[str] = ()) -> dict[str, tuple[int, ...]]:
+    """The arrays read as H×W×C images, each with its per-sample shape as stored (for messages)."""
+    stored = _stored(spec) or {}
+    return {name: shape for name, (shape, dtype) in stored.items()
+            if name not in as_is and _is_image(shape, dtype)}
+
+
+def _stored(spec: DatasetSpec) -> dict[str, tuple[tuple[int, ...], np.dtype]] | None:
+    """Each input's per-sample shape and dtype as stored, read cheaply; None for folders, synthetic data."""
     if spec.kind == "npz":
-        stored = {name: (shape[1:], dtype) for name, (shape, dtype) in npz_headers(spec.paths[0]).items()
-                  if name not in (LABELS, GROUPS)}
-    elif spec.kind == "builtin":
+        return {name: (shape[1:], dtype) for name, (shape, dtype) in npz_headers(spec.paths[0]).items()
+                if name not in (LABELS, GROUPS)}
+    if spec.kind == "builtin":
         from bench_matrix.workload.driving import Camera
 
-        stored = {SINGLE: ((Camera().rows, Camera().cols, 3), np.dtype(np.uint8))}
-    elif spec.kind == "images":
-        stored = {SINGLE: ((*first_class_image_size(spec.paths[0]), 3), np.dtype(np.uint8))}
-    else:
-        return None
-    return {name: _as_seen(name, shape, dtype, spec.preprocess, layout)
-            for name, (shape, dtype) in stored.items()}
+        return {SINGLE: ((Camera().rows, Camera().cols, 3), np.dtype(np.uint8))}
+    if spec.kind == "images":
+        return {SINGLE: ((*first_class_image_size(spec.paths[0]), 3), np.dtype(np.uint8))}
+    return None
 
 
 def _as_seen(name: str, shape: tuple[int, ...], dtype: np.dtype, preprocess: Preprocess,
@@ -261,13 +290,14 @@ def denormalise(y: np.ndarray, labels: LabelSpec) -> np.ndarray:
     return y
 
 
-def _read(spec: DatasetSpec, inputs: Sequence[TensorSpec] | None) -> Raw:
+def _read(spec: DatasetSpec, inputs: Sequence[TensorSpec] | None, as_is: Sequence[str]) -> Raw:
     shape = partial(geometric, preprocess=spec.preprocess)  # the same for every split
     if spec.kind == "builtin":
         return _builtin(spec)
     if spec.kind == "npz":
         arrays = read_npz(spec.paths[0], spec.task)
-        return _with_images(arrays.inputs, spec.preprocess, arrays.labels, arrays.groups, spec.labels.columns)
+        return _with_images(arrays.inputs, spec.preprocess, arrays.labels, arrays.groups, spec.labels.columns,
+                            as_is)
     if spec.kind == "folder":
         images, labels, groups = read_folders(spec.paths, spec.labels.columns, shape)
         return Raw({SINGLE: images}, labels, groups, (SINGLE,), spec.labels.columns)
@@ -301,17 +331,18 @@ def _builtin(spec: DatasetSpec) -> Raw:
 
 
 def _with_images(arrays: dict[str, np.ndarray], preprocess: Preprocess, labels: np.ndarray | None,
-                 groups: np.ndarray | None, columns: tuple[str, ...]) -> Raw:
-    """Arrays of images (grayscale given a channel axis) cropped and resized; other arrays as given."""
-    inputs = {}
+                 groups: np.ndarray | None, columns: tuple[str, ...], as_is: Sequence[str] = ()) -> Raw:
+    """Arrays of images (grayscale given a channel axis) cropped and resized; other arrays, and those in
+    `as_is`, as given."""
+    inputs, images = {}, []
     for name, array in arrays.items():
-        if _is_image(array.shape[1:], array.dtype):
+        if name not in as_is and _is_image(array.shape[1:], array.dtype):
             array = array if array.ndim == 4 else array[..., None]
             if any(getattr(preprocess, key) is not None for key in GEOMETRIC):
                 array = np.stack([geometric(image, preprocess) for image in array])
+            images.append(name)
         inputs[name] = array
-    images = tuple(name for name, array in inputs.items() if array.ndim == 4)
-    return Raw(inputs, labels, groups, images, columns)
+    return Raw(inputs, labels, groups, tuple(images), columns)
 
 
 def assign_splits(n: int, groups: np.ndarray | None, split: Any, seed: int,

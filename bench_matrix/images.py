@@ -3,6 +3,8 @@ the checks of dataset.preprocess against the images."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from bench_matrix.errors import UserError
@@ -11,6 +13,7 @@ from bench_matrix.matrix.spec import Preprocess
 CROP_SIDES = ("top", "bottom", "left", "right")
 GEOMETRIC = ("crop", "resize", "resize_shorter", "center_crop")
 IMAGE_ONLY = (*GEOMETRIC, "mean", "std")
+LAYOUTS = {"nchw": "C×H×W", "nhwc": "H×W×C"}  # one sample of an image input, in each model layout
 DEFAULT_SCALE = 1.0 / 255.0  # when dataset.preprocess.scale is not given: pixels 0..255 to [0, 1]
 
 
@@ -61,15 +64,17 @@ def value_range(images: np.ndarray) -> tuple[float, float]:
 
 
 def check_preprocess(preprocess: Preprocess, inputs: dict[str, np.ndarray],
-                     ranges: dict[str, tuple[float, float]], where: str) -> None:
-    """Refuse image preprocessing without images (the inputs `ranges` names), a mean or std that fits no
-    image's channels, and the default scale for images that are not pixels 0..255."""
+                     ranges: dict[str, tuple[float, float]], where: str, as_is: Sequence[str] = ()) -> None:
+    """Refuse image preprocessing without images (the inputs `ranges` names; `as_is`: arrays passed as they
+    are), a mean or std that fits no image's channels, and the default scale for images that are not pixels
+    0..255."""
     if not ranges:
         given = [key for key in IMAGE_ONLY if getattr(preprocess, key) is not None]
+        passed = f" ({', '.join(as_is)}: in the model's per-sample shape, passed as stored)" if as_is else ""
         if given:
             raise UserError(f"dataset.preprocess.{given[0]} applies to images, but {where} has no image "
                             f"input ((N, H, W, C) arrays, or (N, H, W) uint8); its inputs: "
-                            f"{', '.join(inputs)}")
+                            f"{', '.join(inputs)}{passed}")
     for name, span in ranges.items():
         channels = inputs[name].shape[-1]
         for key in ("mean", "std"):
@@ -113,6 +118,19 @@ def in_layout(shape: tuple[int, ...], layout: str) -> tuple[int, ...]:
     """The per-sample shape (H,W,C) of a stored image as the model sees it in `layout`."""
     h, w, c = shape
     return (c, h, w) if layout == "nchw" else (h, w, c)
+
+
+def layout_note(images: dict[str, tuple[int, ...]], layout: str) -> str:
+    """For a message about inputs that do not fit: which arrays (name -> per-sample shape as stored) were read
+    as H×W×C images and laid out for the model, and how to say otherwise; empty without images."""
+    if not images:
+        return ""
+    arrays = ", ".join(f"'{name}' ({', '.join(map(str, shape))})" for name, shape in images.items())
+    other = "nhwc" if layout == "nchw" else "nchw"
+    return (f"; the data's {arrays} per sample was read as H×W×C images and laid out "
+            f"{LAYOUTS[layout]} for the model (its layout: {layout}); if the model takes "
+            f"{LAYOUTS[other]}, set layout: {other} on the model, and data stored in the model's own "
+            f"per-sample shape is passed as it is")
 
 
 def _crop(image: np.ndarray, crop: tuple) -> np.ndarray:

@@ -4,6 +4,7 @@ $BENCH_MATRIX_PHASE_FD names (written by jobs, read by the local executor's proc
 from __future__ import annotations
 
 import os
+import time
 
 PHASE_FD = "BENCH_MATRIX_PHASE_FD"  # names the pipe the child writes its phase lines to
 WAITING_MARK = "waiting:"  # a phase line starting with it: the job waits for the machine's timing lock
@@ -17,6 +18,18 @@ def phase(name: str) -> None:
             os.write(int(fd), f"{' '.join(name.split())}\n".encode())
         except OSError:
             pass
+
+
+class Epochs:
+    """Training's progress as phases: after each epoch, its number, the loss and about how long is left."""
+
+    def __init__(self, total: int, what: str = "train"):
+        self.total, self.what, self.begin = total, what, time.monotonic()
+
+    def ended(self, done: int, loss: float) -> None:
+        """Epoch `done` (1-based) ended with mean loss `loss`."""
+        left = (time.monotonic() - self.begin) / done * (self.total - done)
+        phase(f"{self.what} · epoch {done}/{self.total} · loss {loss:.4g} · about {left:.0f} s left")
 
 
 def waiting(message: str) -> None:

@@ -13,6 +13,7 @@ from typing import Any
 from bench_matrix import __version__, data
 from bench_matrix.cell import Cell, CellPlan, Planned
 from bench_matrix.errors import MatrixError
+from bench_matrix.images import layout_note
 from bench_matrix.jobs import ProbeJob
 from bench_matrix.jobs.results import Probe
 from bench_matrix.matrix.expand import combinations, judge, training_key, verdict_key
@@ -23,6 +24,7 @@ from bench_matrix.registry import available
 from bench_matrix.scenarios import selectable
 from bench_matrix.sources.code import model_code
 from bench_matrix.sources.forward_call import call_problem
+from bench_matrix.sources.model_io import batch_problem
 from bench_matrix.tensors import TensorSpec, binding_problem
 from bench_matrix.workspace import Workspace, digest, file_sha256, tree_sha256
 
@@ -33,7 +35,8 @@ Prober = Callable[[ProbeJob], Probe]  # runs the probe job on this machine (exec
 @dataclass(frozen=True)
 class ModelPlan:
     """A model decided once: its dataset and task, its inputs (declared or read from its file; None: the
-    dataset's), the cell computing its fp32 reference, and the log of its preparation."""
+    dataset's), the cell computing its fp32 reference, the log of its preparation, and the dataset's arrays
+    already in its inputs' per-sample shapes (passed as they are)."""
 
     spec: ModelSpec
     dataset: DatasetSpec
@@ -42,6 +45,7 @@ class ModelPlan:
     baseline: Cell | None
     log: Path
     described: str  # how reports name its source: builtin, file or factory + weights, relative to the matrix
+    as_is: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -82,7 +86,7 @@ def _probe(matrix: Matrix, cells: list[Cell], installed: list[str], workspace: W
     keys = tuple(sorted({verdict_key(matrix, c) for c in cells}))
     training = tuple(sorted({k for c in cells if (k := training_key(matrix, c))}))
     files = tuple(sorted({(m.framework, m.source_format, str(m.file)) for m in matrix.models
-                          if m.file is not None and not m.inputs}))
+                          if m.file is not None and (not m.inputs or m.source_format == "onnx")}))  # batch
     names = tuple(sorted(set(installed) | {k[0] for k in keys}))
     factories = tuple(sorted({(m.factory, tuple(map(str, m.python_path))) for m in matrix.models
                               if m.factory and _several_inputs(matrix, m)}))
@@ -104,7 +108,7 @@ def _model_plan(matrix: Matrix, model: ModelSpec, read: dict[str, tuple[TensorSp
     baseline = Cell(model.name, model.framework, backend, "none", "fp32", "cpu") if backend else None
     dataset = replace(matrix.dataset_of(model), task=matrix.task_of(model))  # the task decides the labels
     return ModelPlan(model, dataset, dataset.task, inputs, baseline, workspace.log(f"model-{model.name}"),
-                     _described(matrix, model))
+                     _described(matrix, model), data.model_shaped(dataset, inputs, model.layout))
 
 
 def _described(matrix: Matrix, model: ModelSpec) -> str:
@@ -127,26 +131,34 @@ def _several_inputs(matrix: Matrix, model: ModelSpec) -> bool:
 
 def _check_models(matrix: Matrix, models: dict[str, ModelPlan], probe: Probe) -> None:
     """Inputs the data cannot feed or a factory's forward cannot take, synthetic data for a model whose inputs
-    nobody declared: exit 2, located."""
-    problems = []
-    for i, m in enumerate(matrix.models):
-        planned = models[m.name]
-        at = ("models", i)
-        if planned.dataset.kind == "synthetic" and planned.inputs is None:
-            problems.append((at, f"model {m.name}: synthetic data is drawn for the model's inputs, which its "
-                                 f"{'file does' if m.file else 'factory and weights do'} not declare; declare "
-                                 f"them under models[{i}].inputs (name, shape, dtype)"))
-            continue
-        described = data.describe(planned.dataset, m.layout)
-        names = [spec.name for spec in planned.inputs] if planned.inputs else list(described or ())
-        problem = _forward_problem(m, names, probe)
-        if planned.inputs is not None and described is not None:
-            problem = binding_problem(described, planned.inputs) or problem
-        if problem:
-            problems.append((at + ("inputs",) if m.inputs else at, f"model {m.name}: {problem}"))
+    nobody declared, a batch size fixed in the model's file: exit 2, located."""
+    found = (_model_problem(matrix, i, models[m.name], probe) for i, m in enumerate(matrix.models))
+    problems = [problem for problem in found if problem]
     if problems:
         raise MatrixError([f"{matrix.path}:{_line(matrix, at)}: {format_path(at)}: {message}"
                            for at, message in problems])
+
+
+def _model_problem(matrix: Matrix, i: int, planned: ModelPlan, probe: Probe) -> tuple[tuple, str] | None:
+    """Where in the matrix and why model `i` cannot run, or None."""
+    m, at = planned.spec, ("models", i)
+    if planned.dataset.kind == "synthetic" and planned.inputs is None:
+        return at, (f"model {m.name}: synthetic data is drawn for the model's inputs, which its "
+                    f"{'file does' if m.file else 'factory and weights do'} not declare; declare "
+                    f"them under models[{i}].inputs (name, shape, dtype)")
+    described = data.describe(planned.dataset, m.layout, planned.as_is)
+    names = [spec.name for spec in planned.inputs] if planned.inputs else list(described or ())
+    problem = _forward_problem(m, names, probe)
+    if planned.inputs is not None and described is not None and (
+            unfit := binding_problem(described, planned.inputs)):
+        problem = unfit + layout_note(data.images_read(planned.dataset, planned.as_is), m.layout)
+    if problem:
+        return at + ("inputs",) if m.inputs else at, f"model {m.name}: {problem}"
+    fixed = probe.batches.get(str(m.file)) if m.file else None
+    if fixed and (problem := batch_problem(relative(matrix, m.file), m.source_format, fixed,
+                                           matrix.settings.batch_size)):
+        return at, f"model {m.name}: {problem}"
+    return None
 
 
 def _forward_problem(model: ModelSpec, names: list[str], probe: Probe) -> str | None:

@@ -5,11 +5,13 @@ from bench_matrix.hardware import cuda_mismatch_reason, no_gpu_reason, precision
 from bench_matrix.matrix.schema import QAT_KINDS
 from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.measure.env import installed_versions
+from bench_matrix.phases import Epochs
 from bench_matrix.sources import ModelFileError, SourceModel
+from bench_matrix.sources.fx_trace import fx_prepare
 from bench_matrix.sources.model_io import read_inputs
 from bench_matrix.sources.onnx_file import load_onnx
 from bench_matrix.sources.pytorch import quiet_torch, use_engine
-from bench_matrix.sources.tensorflow import keras, tensorflow, thread_settings
+from bench_matrix.sources.tensorflow import epoch_phases, keras, tensorflow, thread_settings
 from bench_matrix.strategies.base import FineTuned, FineTuneRequest, Trainer, training_arrays, weight_stats
 from bench_matrix.tensors import Inputs, TensorSpec, concrete, count, example_inputs, random_inputs, resize, \
     specs_from_list, specs_to_list, take
@@ -18,10 +20,10 @@ __all__ = [
     # backends
     "Backend", "ConvertRequest", "DEVICES", "QAT_KINDS", "Session", "StrategySpec", "Support",
     # trainers
-    "FineTuneRequest", "FineTuned", "Trainer", "training_arrays", "weight_stats",
+    "Epochs", "FineTuneRequest", "FineTuned", "Trainer", "epoch_phases", "training_arrays", "weight_stats",
     # source models
-    "ModelFileError", "SourceModel", "keras", "load_onnx", "quiet_torch", "read_inputs", "tensorflow",
-    "thread_settings", "use_engine",
+    "ModelFileError", "SourceModel", "fx_prepare", "keras", "load_onnx", "quiet_torch", "read_inputs",
+    "tensorflow", "thread_settings", "use_engine",
     # tensors
     "Inputs", "TensorSpec", "concrete", "count", "example_inputs", "random_inputs", "resize",
     "specs_from_list", "specs_to_list", "take",

@@ -1,6 +1,10 @@
-"""Progress while a matrix runs: cells done of total, current cell and phase, elapsed, estimate."""
+"""Progress while a matrix runs: cells done of total, current cell and phase, elapsed, estimate; outside a
+terminal (a CI log), one line per step and phase instead, with the time since the run began."""
 
 from __future__ import annotations
+
+import re
+import time
 
 from rich.console import Console
 from rich.markup import escape
@@ -12,11 +16,14 @@ from bench_matrix.measurement import Interference, Measurement, TaskMetrics
 from bench_matrix.store import CellRecord
 
 
+LATER_ROUND = re.compile(r"round (?!1$)\d+$")  # a log gets "round 1" of a model's rounds, not each one
+
+
 class RunProgress:
-    """A progress bar redrawn only on events and idle ticks, never while a cell measures."""
+    """A progress bar redrawn only on events and idle ticks, never while a cell measures; lines in a log."""
 
     def __init__(self, console: Console, total: int):
-        self.console = console
+        self.console, self._plain, self._begin = console, not console.is_terminal, time.monotonic()
         self._progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                                   TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
                                   console=console, auto_refresh=False, transient=True)
@@ -35,11 +42,20 @@ class RunProgress:
         self._current = text
         self._progress.update(self._task, description=text)
         self._progress.refresh()
+        self._line(text)
 
     def phase(self, name: str) -> None:
         """A phase of the current step began, or its job waits for the timing lock (naming the holder)."""
         self._progress.update(self._task, description=f"{self._current} · {escape(name)}")
         self._progress.refresh()
+        if not LATER_ROUND.match(name):
+            self._line(f"{self._current} · {name}")
+
+    def _line(self, text: str) -> None:
+        """Outside a terminal, where the bar is not drawn: the line, after the seconds since the start."""
+        if self._plain:
+            self.console.print(f"[{time.monotonic() - self._begin:7.1f} s] {text}", markup=False,
+                               highlight=False, soft_wrap=True)
 
     def tick(self) -> None:
         self._progress.refresh()

@@ -28,7 +28,7 @@ PREPARE_TIMEOUT_S = 4 * 3600.0
 
 
 @dataclass(frozen=True)
-class _Ready:
+class Ready:
     """A model ready for its cells: its plan, its dataset, its source and reference outputs."""
 
     model: ModelPlan
@@ -37,7 +37,7 @@ class _Ready:
 
 
 @dataclass(frozen=True)
-class _Measuring:
+class Measuring:
     """A converted cell waiting for its model's rounds: its plan, measure job, start and machine."""
 
     plan: CellPlan
@@ -50,9 +50,9 @@ class _Measuring:
 class _Converting:
     """A model's cells while they convert: the cells still converting, and the converted ones."""
 
-    ready: _Ready
+    ready: Ready
     pending: set[str]
-    measuring: list[_Measuring] = field(default_factory=list)
+    measuring: list[Measuring] = field(default_factory=list)
 
 
 class Runner:
@@ -144,11 +144,12 @@ class Runner:
             then(ended)
 
     def _prepare_data(self, model: ModelPlan, cells: list[CellPlan]) -> None:
-        """The model's dataset, prepared once per run (synthetic data: once per set of inputs); then the
-        model."""
+        """The model's dataset, prepared once per run (synthetic data: once per set of inputs; once per set of
+        arrays passed as they are); then the model."""
         inputs = model.inputs if model.dataset.kind == "synthetic" else None
-        key = digest({"dataset": model.dataset, "inputs": [i.to_dict() for i in inputs or ()]})
-        work = Work(DatasetJob(self.ws, model.dataset, inputs or ()),
+        key = digest({"dataset": model.dataset, "inputs": [i.to_dict() for i in inputs or ()],
+                      **({"as_is": model.as_is} if model.as_is else {})})
+        work = Work(DatasetJob(self.ws, model.dataset, inputs or (), model.as_is),
                     Limits(self.ws.log("dataset"), PREPARE_TIMEOUT_S))
         self._once(key, work, lambda ended: self._prepare_model(model, cells, ended), "preparing dataset")
 
@@ -158,8 +159,8 @@ class Runner:
             raise error(f"dataset: {data.error}" + ("" if data.user_error else
                                                    f"\n(full log: {self.ws.log('dataset')})"))
         prepared: PreparedData = data.result
-        self.store.put_fact("dataset", "info" if model.dataset == self.matrix.dataset else
-                            f"info:{prepared.fingerprint}", prepared.info)
+        name = "info" if model.dataset == self.matrix.dataset else f"info:{prepared.fingerprint}"
+        self._fact("dataset", name, prepared.info)
         if model.baseline is None:
             why = f"no installed backend computes the fp32 baseline of {model.spec.framework} models"
             self._model_failed(model, cells, why)
@@ -181,13 +182,13 @@ class Runner:
         if not ended.ok:
             self._model_failed(model, cells, ended.error)
             return
-        ready = _Ready(model, data, ended.result)
-        self.store.put_fact(f"model:{model.spec.name}", "info", ready.prepared.info)
+        ready = Ready(model, data, ended.result)
+        self._fact(f"model:{model.spec.name}", "info", ready.prepared.info)
         self._converting[model.spec.name] = _Converting(ready, {p.cell.key for p in cells})
         for p in cells:
             self._start_cell(p, ready)
 
-    def _start_cell(self, p: CellPlan, ready: _Ready) -> None:
+    def _start_cell(self, p: CellPlan, ready: Ready) -> None:
         """Convert the cell; fine-tuned first (once per model and strategy) when its strategy says so."""
         started = _now()
         self.progress.step(f"{ready.model.spec.name} · {p.cell.label}")
@@ -199,14 +200,14 @@ class Runner:
         work = Work(job, Limits(self._log(p), PREPARE_TIMEOUT_S))
         self._once((p.cell.model, p.cell.strategy), work, lambda tuned: self._tuned(p, ready, started, tuned))
 
-    def _tuned(self, p: CellPlan, ready: _Ready, started: str, tuned: Ended) -> None:
+    def _tuned(self, p: CellPlan, ready: Ready, started: str, tuned: Ended) -> None:
         if not tuned.ok:
             self._finished(self._record(p, "failed", f"finetune: {tuned.error}", started, env=tuned.env))
-            self._settled(p, None)
+            self._settled(p, [])
             return
         self._convert(p, ready, tuned.result.source, tuned.result.facts, started)
 
-    def _convert(self, p: CellPlan, ready: _Ready, source: SourceModel, facts: dict | None,
+    def _convert(self, p: CellPlan, ready: Ready, source: SourceModel, facts: dict | None,
                  started: str) -> None:
         """Convert the cell's source; it is measured with the model's other cells once all are converted."""
         model, settings = ready.model, self.matrix.settings
@@ -215,46 +216,48 @@ class Runner:
         self._submit(Work(job, self._limits(p)),
                      lambda ended: self._converted(p, ready, source, facts, started, ended))
 
-    def _converted(self, p: CellPlan, ready: _Ready, source: SourceModel, facts: dict | None, started: str,
+    def _converted(self, p: CellPlan, ready: Ready, source: SourceModel, facts: dict | None, started: str,
                    ended: Ended) -> None:
         if not ended.ok:
             reason = f"{ended.jobs[-1].name}: {ended.error}"
             self._finished(self._record(p, "failed", reason, started, env=ended.env))
-            self._settled(p, None)
+            self._settled(p, [])
             return
         model, settings = ready.model, self.matrix.settings
         job = MeasureJob(self.ws, p.cell, model.task, ended.result, source, ready.data, model.spec.layout,
                          settings, ready.prepared.reference, self.matrix.metrics, facts, p.scenarios)
-        self._settled(p, _Measuring(p, job, started, ended.where))
+        self._settled(p, [Measuring(p, job, started, ended.where)])
 
-    def _settled(self, p: CellPlan, measuring: _Measuring | None) -> None:
+    def _settled(self, p: CellPlan, measuring: list[Measuring]) -> None:
         """A cell's conversion ended; once all of its model's have, its converted cells are measured together,
         in rounds, one rounds job per machine holding their artifacts."""
         converting = self._converting[p.cell.model]
         converting.pending.discard(p.cell.key)
-        if measuring is not None:
-            converting.measuring.append(measuring)
+        converting.measuring.extend(measuring)
         if converting.pending:
             return
-        by_machine: dict[Any, list[_Measuring]] = {}
+        by_machine: dict[Any, list[Measuring]] = {}
         for m in converting.measuring:
             by_machine.setdefault(m.where, []).append(m)
         baseline = converting.ready.model.baseline
         for where, group in by_machine.items():
-            keys = {m.plan.cell.key for m in group}
-            job = RoundsJob(self.ws, tuple(m.job for m in group),
-                            tuple(self._log(m.plan).name for m in group),
-                            baseline.key if baseline is not None and baseline.key in keys else None)
+            job = self._rounds(group, baseline)
             limits = Limits(self._log(group[0].plan), self.matrix.settings.timeout_s,
                             self.matrix.settings.threads)
             self.progress.step(f"{p.cell.model} · measuring {len(group)} cells in rounds")
             self._submit(Work(job, limits, on=where), lambda ended, group=group: self._measured(group, ended))
 
-    def _measured(self, group: list[_Measuring], ended: Ended) -> None:
+    def _rounds(self, group: list[Measuring], baseline: Any) -> RoundsJob:
+        """The rounds job of a model's cells on one machine, paired against their baseline if among them."""
+        keys = {m.plan.cell.key for m in group}
+        return RoundsJob(self.ws, tuple(m.job for m in group), tuple(self._log(m.plan).name for m in group),
+                         baseline.key if baseline is not None and baseline.key in keys else None)
+
+    def _measured(self, group: list[Measuring], ended: Ended) -> None:
         results = {c.key: c for c in ended.result.cells} if ended.ok else {}
         for m in group:
             artifact = str(m.job.converted.model)
-            found = results.get(m.plan.cell.key)
+            found = results.get(m.job.id)
             if found is None or found.measured is None:
                 why = found.error if found is not None else ended.error
                 self._finished(self._record(m.plan, "failed", f"measure: {why}", m.started, env=ended.env,
@@ -263,6 +266,9 @@ class Runner:
             measured = found.measured
             self._finished(self._record(m.plan, "ok", None, m.started, metrics=measured.metrics,
                                         env=measured.env, artifact=artifact), measured.samples)
+
+    def _fact(self, kind: str, name: str, value: Any) -> None:
+        self.store.put_fact(kind, name, value)
 
     def _limits(self, p: CellPlan) -> Limits:
         """A cell job's log, time limit and threads."""

@@ -112,14 +112,13 @@ def binding_problem(data: Mapping[str, TensorSpec], model: Sequence[TensorSpec])
     """Why the data's arrays cannot feed the model's inputs (a missing input, another shape or dtype), or None.
 
     A single data array named `x` feeds a single-input model whatever the input's name."""
-    names = _data_names(data, model)
+    names = data_names(data, model)
     for spec, name in zip(model, names):
         if name not in data:
             provided = ", ".join(data) or "nothing"
             return f"the model's input {spec.describe()} is not in the data (it provides {provided})"
         given = data[name]
-        if len(given.shape) != len(spec.shape) or any(
-                m is not None and g is not None and m != g for m, g in zip(spec.shape, given.shape)):
+        if not shape_fits(given.shape, spec.shape):
             return (f"the model's input {spec.describe()} gets the data's '{name}' of shape "
                     f"({', '.join(map(str, given.shape))}) per sample")
         if given.dtype != spec.dtype and (given.dtype, spec.dtype) not in SAFE_CASTS:
@@ -131,7 +130,7 @@ def binding_problem(data: Mapping[str, TensorSpec], model: Sequence[TensorSpec])
 def bind(data: Mapping[str, np.ndarray], model: Sequence[TensorSpec]) -> Inputs:
     """The data's arrays as the model's inputs: renamed (a single `x`), in the model's order and dtypes."""
     specs = {name: TensorSpec(name, a.shape[1:], str(a.dtype)) for name, a in data.items()}
-    names = _data_names(specs, model)
+    names = data_names(specs, model)
     out: Inputs = {}
     for spec, name in zip(model, names):
         array = data[name]
@@ -140,7 +139,13 @@ def bind(data: Mapping[str, np.ndarray], model: Sequence[TensorSpec]) -> Inputs:
     return out
 
 
-def _data_names(data: Mapping[str, Any], model: Sequence[TensorSpec]) -> list[str]:
+def shape_fits(given: Sequence[int | None], model: Sequence[int | None]) -> bool:
+    """Whether a per-sample shape fits the model's: as many axes, equal wherever both are known."""
+    return len(given) == len(model) and all(m is None or g is None or m == g for m, g in zip(model, given))
+
+
+def data_names(data: Mapping[str, Any], model: Sequence[TensorSpec]) -> list[str]:
+    """The data array feeding each model input, in the model's order (a single array feeds a single input)."""
     if len(model) == 1 and model[0].name not in data and len(data) == 1:
         return [next(iter(data))]
     return [spec.name for spec in model]

@@ -52,6 +52,10 @@ class Workspace:
         """The parameter count of a source model."""
         return self.root / "cache" / "params" / f"{fingerprint}.json"
 
+    def automatic(self, stem: str, fingerprint: str) -> Path:
+        """The automatic matrix `run MODEL_FILE` writes and runs, by its model's name and its digest."""
+        return self.root / "auto" / f"{stem}-{fingerprint}.yaml"
+
     @property
     def logs(self) -> Path:
         return self.root / "logs"

@@ -189,7 +189,7 @@ def test_two_models_sharing_weights_with_other_inputs_share_no_export(tmp_path):
     run = cli(tmp_path, "run", "m.yaml")
     assert run.returncode == 0, run.stdout + run.stderr
     found = {r["cell"]["model"] + "/" + r["cell"]["backend"]: r["metrics"]
-             for r in json.loads(cli(tmp_path, "report", "--format", "json").stdout)}
+             for r in json.loads(cli(tmp_path, "report", "--format", "json").stdout)["records"]}
     assert found["pq/pytorch"]["mse"] < 1e-9 and found["qp/pytorch"]["mse"] > 1  # qp computes q - 3p
     for model in ("pq", "qp"):
         assert found[f"{model}/onnxruntime"]["max_abs_diff_vs_baseline"] < 1e-4
@@ -202,5 +202,5 @@ def test_a_run_says_when_the_calibration_split_had_fewer_samples_than_asked(onnx
     run = cli(onnx_project, "run", "m.yaml")
     assert run.returncode == 0, run.stdout + run.stderr
     assert "calibrated on 12 of the 100 samples asked for" in " ".join(run.stdout.split())
-    found = json.loads(cli(onnx_project, "report", "--format", "json").stdout)
+    found = json.loads(cli(onnx_project, "report", "--format", "json").stdout)["records"]
     assert found[0]["metrics"]["calibration"] == {"asked": 100, "used": 12}

@@ -36,7 +36,7 @@ def records(project: Path) -> dict[str, dict]:
     out = cli(project, "report", "--format", "json")
     assert out.returncode == 0, out.stderr
     return {"/".join(r["cell"][k] for k in ("backend", "strategy", "precision", "target")): r
-            for r in json.loads(out.stdout)}
+            for r in json.loads(out.stdout)["records"]}
 
 
 def test_run_small_matrix_and_report(tiny_project):

@@ -22,7 +22,7 @@ def records(project: Path) -> dict[str, dict]:
     out = cli(project, "report", "--format", "json")
     assert out.returncode == 0, out.stderr
     return {"/".join(r["cell"][k] for k in ("model", "backend", "strategy", "precision")): r
-            for r in json.loads(out.stdout)}
+            for r in json.loads(out.stdout)["records"]}
 
 
 def factory_model(name: str, factory: str, weights: str, extra: str = "") -> str:

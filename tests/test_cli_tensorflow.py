@@ -62,7 +62,7 @@ def _records(project: Path) -> dict[str, dict]:
     out = cli(project, "report", "--format", "json")
     assert out.returncode == 0, out.stderr
     return {"/".join(r["cell"][k] for k in ("backend", "strategy", "precision", "target")): r
-            for r in json.loads(out.stdout)}
+            for r in json.loads(out.stdout)["records"]}
 
 
 @pytest.fixture(scope="module")

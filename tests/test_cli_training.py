@@ -4,6 +4,7 @@ honestly; a classifier fine-tuned on its class labels."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -31,6 +32,10 @@ def test_pytorch_pruning_and_qat(tiny_project: Path) -> None:
     (tiny_project / "m.yaml").write_text(text)
     run = cli(tiny_project, "run", "m.yaml", timeout=900)
     assert run.returncode == 0 and "0 failed" in run.stdout, run.stdout + run.stderr
+    # not a terminal: a line per step and phase, each fine-tuning's epochs with their loss and time left
+    epoch = r"\] tiny · torchscript qat int8 · fine-tune · epoch 1/1 · loss [0-9.e+-]+ · about 0 s left"
+    assert re.search(epoch, run.stdout), run.stdout
+    assert re.search(r"\] tiny · measuring \d+ cells in rounds · round 1\n", run.stdout), run.stdout
     found = {key: r for key, r in _records(tiny_project).items() if r["status"] == "ok"}
     assert set(found) == {"torchscript/prune_local/fp32/cpu", "onnxruntime/prune_local/fp32/cpu",
                           "torchscript/prune_global/fp32/cpu", "torchscript/qat/int8/cpu",
@@ -70,6 +75,8 @@ def test_tensorflow_pruning_clustering_and_qat_in_tflite(tmp_path: Path) -> None
         "warmup_s: 0.0, batch_size: 8, timeout_s: 300}\n")
     run = cli(project, "run", "m.yaml", timeout=900)
     assert run.returncode == 0 and "0 failed" in run.stdout, run.stdout + run.stderr
+    epoch = r"\] tiny · tflite prune fp32 · fine-tune · epoch 2/2 · loss [0-9.e+-]+ · about 0 s left"
+    assert re.search(epoch, run.stdout), run.stdout  # Keras' epochs, from its callback
     found = {key: r for key, r in _records(project).items() if r["status"] == "ok"}
     assert set(found) == {"tflite/prune/fp32/cpu", "tflite/cluster/fp32/cpu", "tflite/qat/int8/cpu",
                           "tflite/prune_dynamic/int8/cpu", "onnxruntime/qat/int8/cpu"}
@@ -107,7 +114,7 @@ def test_a_classifier_is_fine_tuned_on_its_class_labels_and_none_is_refused(tmp_
     plan = cli(tmp_path, "plan", "m.yaml")
     assert "fine-tuning needs labels; the task is none" in plan.stdout, plan.stdout
     report = cli(tmp_path, "report", "--format", "json")
-    found = {(r["cell"]["model"], r["cell"]["strategy"]): r for r in json.loads(report.stdout)}
+    found = {(r["cell"]["model"], r["cell"]["strategy"]): r for r in json.loads(report.stdout)["records"]}
     assert found[("cls", "prune")]["status"] == "ok" and ("two", "prune") not in found, found.keys()
     metrics = found[("cls", "prune")]["metrics"]
     assert metrics["finetune"]["loss"] == "cross_entropy" and metrics["sparsity"] >= 0.3

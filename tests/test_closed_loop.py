@@ -36,7 +36,7 @@ def pilotnet_matrix(backends: str, closed_loop: str, samples: int = 4000, circui
 def records(project: Path, env: dict[str, str] | None = None) -> dict[str, dict]:
     out = cli(project, "report", "--format", "json", env=env)
     assert out.returncode == 0, out.stderr
-    return {r["cell"]["backend"]: r for r in json.loads(out.stdout)}
+    return {r["cell"]["backend"]: r for r in json.loads(out.stdout)["records"]}
 
 
 def run(project: Path, text: str, *args: str, env: dict[str, str] | None = None) -> None:

@@ -29,7 +29,7 @@ def key(record: dict) -> str:
 def stored(project: Path, workspace: str) -> list[dict]:
     out = cli(project, "--workspace", str(project / workspace), "report", "--format", "json")
     assert out.returncode == 0, out.stderr
-    return json.loads(out.stdout)
+    return json.loads(out.stdout)["records"]
 
 
 def run_both(project: Path, first: list[str], second: list[str]) -> None:

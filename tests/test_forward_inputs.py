@@ -5,6 +5,8 @@ torch.export and fine-tuning; inputs that cannot be matched to its parameters ar
 from __future__ import annotations
 
 import hashlib
+import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -15,6 +17,7 @@ TESTS = Path(__file__).resolve().parent
 sys.path.insert(0, str(TESTS))
 
 import forward_models  # noqa: E402
+from conftest import FAST_SETTINGS, cli  # noqa: E402
 from convert_helper import convert_with  # noqa: E402
 
 import torch  # noqa: E402
@@ -168,3 +171,51 @@ def _params(*spec: str) -> tuple[Parameter, ...]:
 ])
 def test_which_signatures_are_refused(params, names, declared, refused):
     assert (call_problem("m:f", _params(*params), list(names), declared) is not None) == refused
+
+
+KEYWORDS = ("models:\n  - {{name: kw, framework: pytorch, factory: 'forward_models:keywords', "
+            "weights: kw.pt, python_path: ['{tests}']}}\n"
+            "dataset: {{npz: data.npz, task: none, split: {{train: 0.5, calibration: 0.25, test: 0.25}}}}\n"
+            "axes: {{backend: [pytorch, torchscript], strategy: [none, ptq_static], precision: [fp32, int8], "
+            "target: [cpu]}}\n")
+HUGGING_FACE = ("it is a Hugging Face transformers model, whose own tracer "
+                "(transformers.utils.fx.symbolic_trace)")
+
+
+def test_a_hugging_face_style_forward_gets_its_inputs_by_name_in_every_trace(tmp_path):
+    """forward(input_ids=None, attention_mask=None, inputs_embeds=None): FX would trace inputs_embeds as an
+    input too (and the model refuses both); the int64 mask must stay unquantised in FX int8."""
+    torch.save(forward_models.keywords().state_dict(), tmp_path / "kw.pt")
+    np.savez(tmp_path / "data.npz", **forward_models.token_arrays())
+    (tmp_path / "m.yaml").write_text(KEYWORDS.format(tests=TESTS) + FAST_SETTINGS)
+    run = cli(tmp_path, "run", "m.yaml")
+    assert run.returncode == 0, run.stderr
+    records = json.loads(cli(tmp_path, "report", "--format", "json").stdout)["records"]
+    cells = {(r["cell"]["backend"], r["cell"]["strategy"]): r for r in records}
+    assert sorted(cells) == [("pytorch", "none"), ("torchscript", "none"), ("torchscript", "ptq_static")]
+    for cell, record in cells.items():
+        assert record["status"] == "ok", (cell, record["reason"])
+        assert record["metrics"]["cosine_similarity"] > (0.99 if cell[1] == "ptq_static" else 0.999999)
+
+
+@pytest.mark.parametrize("factory", ["branchy", "transformers_branchy"])
+def test_a_module_no_tracer_can_trace_fails_in_one_line_naming_the_tracer(factory, tmp_path):
+    path = tmp_path / "branchy.pt"
+    torch.save(getattr(forward_models, factory)().state_dict(), path)
+    specs = tuple(TensorSpec(name, a.shape[1:], "int64") for name, a in forward_models.token_arrays().items())
+    source = SourceModel(name="branchy", framework="pytorch", format="state_dict", path=path, sha256="-",
+                         inputs=specs, factory=f"forward_models:{factory}", python_path=(str(TESTS),))
+    with pytest.raises(ValueError) as caught:
+        convert_with(forward_models.token_arrays(), TorchScriptBackend(), source, tmp_path / "out",
+                     "ptq_static", "int8")
+    message = str(caught.value)
+    assert "\n" not in message and message.startswith(
+        "torch.ao.quantization prepare_fx: torch.fx cannot trace model branchy: TraceError: symbolically "
+        "traced variables cannot be used as inputs to control flow"), message
+    if factory == "branchy":
+        assert "transformers" not in message
+    elif importlib.util.find_spec("transformers") is None:
+        missing = "cannot be imported here (ModuleNotFoundError: No module named 'transformers')"
+        assert f"{HUGGING_FACE} {missing}" in message
+    else:
+        assert "transformers.utils.fx.symbolic_trace cannot trace it either" in message

@@ -299,7 +299,7 @@ class Group:
             self.text += run.communicate(timeout=600)[0]
             self.code = run.returncode
         report = cli(self.project, "report", "--format", "json")
-        by_model = {r["cell"]["model"]: r for r in json.loads(report.stdout or "[]")}
+        by_model = {r["cell"]["model"]: r for r in json.loads(report.stdout or "{}").get("records", [])}
         self.records = {case.id: by_model.get(self.name(case.id)) for case in self.cases}
 
     def name(self, case_id: str) -> str:

@@ -22,7 +22,7 @@ def _ok(out) -> str:
 
 
 def _records(project: Path, *args: str) -> list[dict]:
-    return json.loads(_ok(cli(project, "report", "--format", "json", *args)))
+    return json.loads(_ok(cli(project, "report", "--format", "json", *args)))["records"]
 
 
 # the planted regression: a sleep inside the timed call, so its p50 is at least this however busy the machine

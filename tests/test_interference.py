@@ -163,7 +163,7 @@ def test_a_run_under_a_cpu_bound_competitor_flags_its_cell_and_the_report_marks_
         for proc in competitors:
             stop(proc)
     assert run.returncode == 0, run.stdout + run.stderr
-    (record,) = json.loads(cli(onnx_project, "report", "--format", "json").stdout)
+    (record,) = json.loads(cli(onnx_project, "report", "--format", "json").stdout)["records"]
     seen = record["metrics"]["interference"]
     latency = seen["phases"]["latency"]
     assert latency["dropped"] > latency["windows"] * 0.25  # disturbed in (nearly) every window

@@ -231,7 +231,7 @@ def test_run_fails_broken_and_hostile_model_cells_naming_the_files(
     output = run.stdout + run.stderr
     assert run.returncode == 0 and "0 ok, 0 skipped, 2 failed" in output and "Traceback" not in output, output
     reasons = {r["cell"]["model"]: r["reason"]
-               for r in json.loads(cli(tiny_project, "report", "--format", "json").stdout)}
+               for r in json.loads(cli(tiny_project, "report", "--format", "json").stdout)["records"]}
     assert f"{tiny_project / 'broken.onnx'}: is not a valid ONNX model" in reasons["broken"]
     assert f"{tiny_project / 'hostile.pt2'}: it stores weight" in reasons["hostile"]
     assert "File \"" not in "".join(reasons.values()) and not marker.exists()

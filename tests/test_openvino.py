@@ -313,7 +313,7 @@ def test_matrix_run_measures_openvino_beside_eager(tiny_project: Path) -> None:
     assert run.returncode == 0, run.stdout + run.stderr
     out = cli(tiny_project, "report", "--format", "json")
     found = {"/".join(r["cell"][k] for k in ("backend", "strategy", "precision", "target")): r
-             for r in json.loads(out.stdout)}
+             for r in json.loads(out.stdout)["records"]}
     fp32, int8 = found["openvino/none/fp32/cpu"], found["openvino/ptq_static/int8/cpu"]
     assert fp32["status"] == "ok" and fp32["metrics"]["max_abs_diff_vs_baseline"] <= 1e-5
     assert fp32["metrics"]["session"]["inference_precision"] == "f32"

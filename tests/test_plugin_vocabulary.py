@@ -169,7 +169,7 @@ def test_a_plugin_target_and_its_options_run_end_to_end(project):
     assert run.returncode == 0, run.stdout + run.stderr
     assert "2 ok, 2 skipped, 0 failed" in run.stdout
     out = cli(project, "report", "--format", "json")
-    found = {(r["cell"]["precision"], r["cell"]["target"]): r for r in json.loads(out.stdout)}
+    found = {(r["cell"]["precision"], r["cell"]["target"]): r for r in json.loads(out.stdout)["records"]}
     npu = found[("fp32", "npu")]
     assert npu["status"] == "ok" and npu["metrics"]["session"] == {"hint": "latency", "streams": 2}
     assert npu["env"]["backend_versions"] == {"npu-rt": "0.1"} and npu["metrics"]["cosine_similarity"] > 0.999
@@ -186,6 +186,6 @@ def test_a_target_its_backend_runs_on_cuda_is_also_timed_end_to_end(project):
     run = cli(project, "run", "m.yaml")
     assert run.returncode == 0 and "2 ok, 0 skipped, 0 failed" in run.stdout, run.stdout + run.stderr
     found = {r["cell"]["target"]: r["metrics"] for r in json.loads(cli(project, "report", "--format",
-                                                                         "json").stdout)}
+                                                                         "json").stdout)["records"]}
     gpu_only = {"latency_ms_e2e", "gpu_name", "peak_gpu_mem_mb", "gpu_mem_method"}
     assert gpu_only <= set(found["fake_gpu"]) and not gpu_only & set(found["cpu"])

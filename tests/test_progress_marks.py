@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import re
 
 from rich.console import Console
 
@@ -45,3 +46,26 @@ def test_a_cell_calibrated_on_fewer_samples_than_asked_says_so():
     assert "! calibrated on 40 of the 100 samples asked for" in short
     assert "calibrated" not in line({**METRICS, "calibration": {"asked": 100, "used": 100}})
     assert "calibrated" not in line(METRICS)  # no calibration, or stored before it was recorded
+
+
+def test_outside_a_terminal_each_step_and_phase_is_one_timed_line_and_rounds_after_the_first_are_not():
+    out = io.StringIO()
+    console = Console(file=out, force_terminal=False, width=300)
+    with RunProgress(console, 1) as progress:
+        progress.step("preparing model tiny")
+        progress.phase("train · epoch 1/2 · loss 0.5 · about 3 s left")
+        progress.step("tiny · measuring 2 cells in rounds")
+        for number in (1, 2, 10):
+            progress.phase(f"round {number}")
+    lines = [line for line in out.getvalue().splitlines() if line]
+    assert [line.split("] ", 1)[1] for line in lines] == [
+        "preparing model tiny", "preparing model tiny · train · epoch 1/2 · loss 0.5 · about 3 s left",
+        "tiny · measuring 2 cells in rounds", "tiny · measuring 2 cells in rounds · round 1"]
+    assert all(re.fullmatch(r"\[ +\d+\.\d s\] .+", line) for line in lines), lines
+
+
+def test_in_a_terminal_the_bar_alone_shows_the_steps():
+    out = io.StringIO()
+    with RunProgress(Console(file=out, force_terminal=True, width=300), 1) as progress:
+        progress.step("preparing model tiny")
+    assert not re.search(r"\[ +\d+\.\d s\] preparing", out.getvalue())

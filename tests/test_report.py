@@ -150,7 +150,7 @@ def test_table_prints_tables_and_writes_markdown(store_path: Path, tmp_path: Pat
 
 def test_json_is_the_records(store_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert write_report(store_path, "json", tmp_path, _console()) == []
-    data = json.loads(capsys.readouterr().out)
+    data = json.loads(capsys.readouterr().out)["records"]
     assert len(data) == 7
     assert set(data[0]) == {"cell", "status", "reason", "metrics", "artifact_path", "env", "started_at",
                             "finished_at", "fingerprint", "matrix", "host", "run", "record"}

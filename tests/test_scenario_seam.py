@@ -6,12 +6,14 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1] / "bench_matrix"
-MATRIX_CORE = ["matrix/schema.py", "matrix/extended.py", "matrix/spec.py", "matrix/load.py"]  # hold the built-in dataset's keys
+MATRIX_CORE = ["matrix/schema.py", "matrix/extended.py", "matrix/spec.py", "matrix/load.py",  # hold the built-in
+               "matrix/requirements.py", "matrix/require.py"]  # dataset's keys
 GENERIC = ["runner.py", "plan.py", "cell.py", "jobs/__init__.py", "jobs/measure.py", "plan_view.py",
            "scenarios/base.py", "scenarios/latency.py",
            *(str(p.relative_to(ROOT)) for p in sorted(ROOT.glob("executors/*.py"))),
            *(str(p.relative_to(ROOT)) for p in sorted(ROOT.glob("store*.py"))),
-           *(f"report/{name}.py" for name in ("__init__", "html", "markdown", "terminal", "plots"))]
+           *(f"report/{name}.py" for name in ("__init__", "html", "markdown", "terminal", "plots", "verdict",
+                                              "recommend", "judging", "verdict_view", "pareto_marks"))]
 SCENARIO = ("closed_loop", "closed loop", "closedloop", " laps", "simulator")
 WORKLOAD = ("driving", "circuit")
 

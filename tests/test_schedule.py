@@ -315,6 +315,21 @@ def test_series_falls_back_to_every_window_when_fewer_than_two_are_clean():
     assert Timed().series(LATENCY) == {} and Timed().disturbed_share() == 0.0
 
 
+def test_speed_ups_pair_clean_rounds_or_every_round_when_fewer_than_two_are_clean_in_both():
+    base, cell = Timed(), Timed()
+    for number in range(6):  # clean in base in rounds 0-2, in the cell in 3-5: no two rounds clean in both
+        base.add(number, window(20.0 * (1 + number), None if number < 3 else STEAL))
+        cell.add(number, window(10.0 * (1 + number), None if number >= 3 else STEAL))
+    found = paired(base, cell)
+    assert found is not None and found.rounds == 6 and found.value == pytest.approx(2.0)
+    assert paired(base, cell, clean=True) is None  # what decides stopping counts clean rounds only
+    cell.add(6, window(35.0))
+    base.add(6, window(140.0))
+    cell.add(7, window(40.0))
+    base.add(7, window(160.0))
+    assert paired(base, cell).rounds == 2 and paired(base, cell).value == pytest.approx(4.0)
+
+
 def test_disturbed_rounds_do_not_count_towards_stopping():
     machine = Machine(seed=13)
     sessions = cells(machine, ["base"], noise=0.001)

@@ -25,6 +25,6 @@ def test_a_cached_model_is_found_from_another_directory(onnx_project, tmp_path_f
     second = cli_in(elsewhere, onnx_project / "ws", "run", str(onnx_project / "m.yaml"), "--force")
     assert "2 ok, 0 skipped, 0 failed" in second.stdout, second.stdout + second.stderr
     report = cli_in(elsewhere, onnx_project / "ws", "report", "--format", "json")
-    records = json.loads(report.stdout)
+    records = json.loads(report.stdout)["records"]
     assert [r["status"] for r in records] == ["ok", "ok"]
     assert all(r["metrics"]["max_abs_diff_vs_baseline"] < 1e-4 for r in records)

@@ -45,11 +45,12 @@ def measure_in_rounds(job: RoundsJob, workdir: Path, logs: Path, on_phase: Calla
     except BaseException:  # Ctrl-C or any error here: never leave a session measuring
         sessions.kill()
         raise
+    against = {key: timed.get(reference) for key, reference in job.references}
     base = timed.get(job.baseline) if job.baseline else None
     window = {"waited_s": round(sum(w.waited_s for w in windows), 3), "rounds": rounds.number,
               "rounds_s": round(sum((w.end or w.start) - w.start for w in windows), 3),
               "held": [[w.start, w.end] for w in windows]}
-    return MeasuredGroup(tuple(_result(key, timed[key], base, sessions, settings, window)
+    return MeasuredGroup(tuple(_result(key, timed[key], against.get(key, base), sessions, settings, window)
                                for key in sessions.jobs))
 
 
@@ -58,15 +59,15 @@ class _Sessions:
     closed once its rounds are done."""
 
     def __init__(self, job: RoundsJob, workdir: Path, logs: Path, on_phase: Callable[[str], None]):
-        self.jobs = {cell.cell.key: cell for cell in job.cells}
-        self.logs = {cell.cell.key: logs / name for cell, name in zip(job.cells, job.logs)}
+        self.jobs = {cell.id: cell for cell in job.cells}
+        self.logs = {cell.id: logs / name for cell, name in zip(job.cells, job.logs)}
         self.workdir, self.on_phase = workdir, on_phase
         self.opened: dict[str, SessionProcess] = {}
         self.finished: dict[str, Measured | SessionLost] = {}
 
     def open(self, key: str) -> SessionProcess:
         job = self.jobs[key]
-        self.on_phase(f"loading {job.cell.label}")
+        self.on_phase(f"loading {job.cell.label}" + (f" ({job.side})" if job.side else ""))
         self.opened[key] = SessionProcess(job, self.workdir, self.logs[key], job.settings.timeout_s)
         self.opened[key].ready()
         return self.opened[key]

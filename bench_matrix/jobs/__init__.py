@@ -59,13 +59,15 @@ class ProbeJob(Job):
 
 @dataclass(frozen=True)
 class DatasetJob(Job):
-    """Read, check, preprocess and split a dataset (synthetic: of these inputs)."""
+    """Read, check, preprocess and split a dataset (synthetic: of these inputs; `as_is`: arrays already in the
+    model's per-sample shapes, passed as they are)."""
 
     name = "dataset"
     function = "bench_matrix.jobs.prepare:prepare_dataset"
     result = PreparedData
     dataset: DatasetSpec
     inputs: tuple[TensorSpec, ...] = ()
+    as_is: tuple[str, ...] = ()
 
     def reads(self) -> tuple[Path, ...]:
         return self.dataset.paths
@@ -149,16 +151,22 @@ class MeasureJob(Job):
     metrics: tuple[str, ...] = ()
     finetune: dict[str, Any] | None = None
     scenarios: tuple[Planned, ...] = ()  # run with the loaded session after the latency scenario
+    side: str = ""  # which side of a comparison the artifact is (compare --remeasure); "" in a run
 
     def reads(self) -> tuple[Path, ...]:
         return tuple(p for p in (self.data.directory, self.reference) if p is not None)
+
+    @property
+    def id(self) -> str:
+        """The session's name in its rounds: the cell key, with the side where there is one."""
+        return f"{self.cell.key}@{self.side}" if self.side else self.cell.key
 
 
 @dataclass(frozen=True)
 class RoundsJob(Job):
     """Measure a model's converted cells on one machine together, in interleaved rounds (docs/metrics.md §5):
     the executor keeps each cell's session loaded in its own process and owns the clock; the speed-ups are
-    paired against `baseline` (a cell key), when it is among the cells."""
+    paired against `baseline` (a cell's `id`) when it is among the cells, or as `references` says."""
 
     name = "measure"
     function = "bench_matrix.executors.rounds:measure_in_rounds"  # runs in the executor's process
@@ -166,6 +174,7 @@ class RoundsJob(Job):
     cells: tuple[MeasureJob, ...]
     logs: tuple[str, ...]  # each cell's log file name, in the folder of the work's log
     baseline: str | None = None
+    references: tuple[tuple[str, str], ...] = ()  # (id, the id its speed-up is paired against instead)
 
     def reads(self) -> tuple[Path, ...]:
         return tuple(dict.fromkeys(p for job in self.cells for p in job.reads()))

@@ -13,6 +13,7 @@ import numpy as np
 from bench_matrix import data
 from bench_matrix.cell import NO_STEP
 from bench_matrix.errors import UserError
+from bench_matrix.images import layout_note
 from bench_matrix.phases import phase
 from bench_matrix.jobs import DatasetJob, FinetuneJob, ModelJob
 from bench_matrix.jobs.artifact import ensure_artifact, predict_all
@@ -32,7 +33,7 @@ def prepare_dataset(job: DatasetJob) -> PreparedData:
     """Read, check, preprocess and split the user's dataset (cached); a mistake in it is a UserError."""
     phase("dataset")
     try:
-        directory, info = data.prepare(job.dataset, job.workspace, job.inputs or None)
+        directory, info = data.prepare(job.dataset, job.workspace, job.inputs or None, job.as_is)
     except MemoryError:
         raise UserError(f"{data.source(job.dataset)}: the dataset does not fit in this machine's memory; "
                         f"use fewer samples or smaller images (dataset.preprocess.crop, resize)") from None
@@ -83,7 +84,8 @@ def _chance(info: dict[str, Any]) -> dict[str, Any]:
 def _check_binding(spec: ModelSpec, prepared: PreparedData, inputs: tuple[TensorSpec, ...]) -> None:
     given = {i.name: i for i in data.data_inputs(prepared.info, spec.layout)}
     if problem := binding_problem(given, inputs):
-        raise UserError(f"model {spec.name}: {problem}")
+        images = {i["name"]: tuple(i["shape"]) for i in prepared.info["inputs"] if i["image"]}
+        raise UserError(f"model {spec.name}: {problem}{layout_note(images, spec.layout)}")
 
 
 def _check_outputs(spec: ModelSpec, task: str, outputs: list[np.ndarray], y: np.ndarray | None,

@@ -14,7 +14,7 @@ from bench_matrix.matrix.expand import TrainingKey, Verdict
 from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.registry import BackendLoadError, load_backend
 from bench_matrix.sources.forward_call import Parameter
-from bench_matrix.tensors import TensorSpec
+from bench_matrix.sources.model_io import FileInputs, read_file
 
 DEFAULT_FORMAT = {"pytorch": "state_dict", "tensorflow": "keras"}  # what built-in models arrive as
 
@@ -26,9 +26,11 @@ def probe(job: ProbeJob) -> Probe:
     keys = job.keys if job.keys is not None else _declared(backends)
     trainers = judge_training(job.training)
     verdicts = {key: _verdict(backends, described, _converted(key, trainers)) for key in keys}
+    files = {path: _read(framework, fmt, path) for framework, fmt, path in job.model_files}
     return Probe(described, verdicts, trainers,
-                 inputs={path: _inputs(framework, fmt, path) for framework, fmt, path in job.model_files},
-                 forwards={factory: _forward(factory, path) for factory, path in job.factories})
+                 inputs={path: read and read.inputs for path, read in files.items()},
+                 forwards={factory: _forward(factory, path) for factory, path in job.factories},
+                 batches={path: read.fixed_batch for path, read in files.items() if read})
 
 
 def _load(names: tuple[str, ...]) -> tuple[dict[str, Backend | None], dict[str, Any]]:
@@ -110,12 +112,10 @@ def judge_training(keys: tuple[TrainingKey, ...]) -> dict[TrainingKey, Verdict]:
     return verdicts
 
 
-def _inputs(framework: str, source_format: str, path: str) -> tuple[TensorSpec, ...] | None:
-    """The inputs a model file declares; None when it does not say or cannot be read."""
-    from bench_matrix.sources.model_io import read_inputs
-
+def _read(framework: str, source_format: str, path: str) -> FileInputs | None:
+    """The inputs and fixed batch sizes a model file declares; None when it does not say or cannot be read."""
     try:
-        return read_inputs(framework, source_format, Path(path))
+        return read_file(framework, source_format, Path(path))
     except Exception:  # a file we cannot read is the model's failure, reported when it is prepared
         return None
 

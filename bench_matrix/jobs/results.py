@@ -25,13 +25,15 @@ class Result:
 @dataclass(frozen=True)
 class Probe(Result):
     """The probe job's findings: each backend described, the verdict on each combination and fine-tuning, the
-    inputs model files declare (None: not declared, or unreadable), the parameters of factories' forward."""
+    inputs model files declare (None: not declared, or unreadable), the parameters of factories' forward, and
+    the fixed batch sizes model files declare (path -> input name -> size)."""
 
     backends: dict[str, dict[str, Any]]
     verdicts: dict[VerdictKey, Verdict]
     trainers: dict[TrainingKey, Verdict]
     inputs: dict[str, tuple[TensorSpec, ...] | None] = field(default_factory=dict)
     forwards: dict[str, tuple[Parameter, ...] | None] = field(default_factory=dict)
+    batches: dict[str, dict[str, int]] = field(default_factory=dict)
 
     def devices(self) -> dict[tuple[str, str], str]:
         """(backend, target) -> the device it runs on."""

@@ -8,6 +8,7 @@ import json
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
+from bench_matrix.matrix.requirements import with_scenarios
 from bench_matrix.matrix.schema import PRECISIONS, SCHEMA
 from bench_matrix.scenarios import selectable
 
@@ -47,6 +48,9 @@ def matrix_schema() -> dict[str, Any]:
     """SCHEMA (the core) with each selectable scenario's section: the built-in matrix format."""
     schema = copy.deepcopy(SCHEMA)
     schema["properties"].update({s.name: copy.deepcopy(s.schema) for s in selectable()})
+    model = schema["properties"]["models"]["items"]["properties"]
+    for holder in (schema["properties"], model):
+        holder["requirements"] = with_scenarios(holder["requirements"])
     return schema
 
 

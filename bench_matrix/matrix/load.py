@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import stat
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -19,6 +20,7 @@ from bench_matrix.matrix.schema import (
     STRATEGY_KINDS,
 )
 from bench_matrix.matrix.extended import axis_values, installed_schema
+from bench_matrix.matrix.require import declared
 from bench_matrix.matrix.spec import (
     DEFAULT_LAYOUT,
     MODEL_SUFFIXES,
@@ -72,7 +74,7 @@ def load_matrix(path: str | Path, backends: list[str] | None = None) -> Matrix:
     mistyped = {tuple(e.absolute_path) for e in errors if e.validator == "type"}
     for error in errors:  # a value of the wrong type gets one message, not also its bounds
         if error.validator == "type" or tuple(error.absolute_path) not in mistyped:
-            _describe(error, report)
+            describe(error, report)
     if report.problems:
         raise MatrixError(report.problems)
     matrix = _build(path, data, lines, report, backends, vocabulary)
@@ -81,12 +83,13 @@ def load_matrix(path: str | Path, backends: list[str] | None = None) -> Matrix:
     return matrix
 
 
-def _describe(error: jsonschema.ValidationError, report: Located) -> None:
+def describe(error: jsonschema.ValidationError, report: Located) -> None:
     at = tuple(error.absolute_path)
     schema, value, kind = error.schema, error.instance, error.validator
     if kind == "additionalProperties" and isinstance(value, dict):
         allowed = sorted(schema.get("properties", {}))
-        for key in [k for k in value if k not in schema.get("properties", {})]:
+        patterns = list(schema.get("patternProperties", {}))
+        for key in [k for k in value if k not in allowed and not any(re.search(p, k) for p in patterns)]:
             if key in schema.get("x-retired", {}):
                 report.add(at + (key,), schema["x-retired"][key])
                 continue
@@ -184,7 +187,7 @@ def _build(path: Path, data: dict[str, Any], lines: dict, report: Located, backe
                   strategies=strategies, axes=axes, include=selectors["include"],
                   exclude=selectors["exclude"], settings=Settings(**data.get("settings", {})),
                   backend_options=options, metrics=tuple(data.get("metrics", ())), scenarios=scenarios,
-                  lines=lines)
+                  requirements=declared(data, report), lines=lines)
 
 
 def _check_metrics(names: list[str], report: Located) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from bench_matrix.matrix.requirements import SCHEMA as REQUIREMENTS
 from bench_matrix.matrix.spec import TASKS
 from bench_matrix.tensors import DTYPES
 from bench_matrix.workload.driving import defaults as builtin_data
@@ -254,6 +255,8 @@ SCHEMA: dict[str, Any] = {
                                           "file, else the dataset's)"},
                 "task": {"enum": list(TASKS), "description": "this model's task (default: the dataset's)"},
                 "dataset": {**DATASET, "description": "this model's own dataset (default: the matrix's)"},
+                "requirements": {**REQUIREMENTS, "description": "this model's own requirements, over the "
+                                                                "matrix's key by key"},
             },
             "oneOf": [{"required": ["builtin"]}, {"required": ["file"]}, {"required": ["factory"]}],
             "x-message": "give exactly one of 'builtin', 'file' or 'factory' (with 'weights')",
@@ -277,6 +280,7 @@ SCHEMA: dict[str, Any] = {
                             "additionalProperties": {"type": "object"}},
         "metrics": {"type": "array", "uniqueItems": True, "items": {"type": "string"},
                     "description": "metric plugins to compute for every cell, besides the task's own"},
+        "requirements": REQUIREMENTS,
         "include": {"type": "array", "items": SELECTOR},
         "exclude": {"type": "array", "items": SELECTOR},
         "settings": {"type": "object", "additionalProperties": False, "x-retired": RETIRED, "properties": {

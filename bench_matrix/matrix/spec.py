@@ -6,6 +6,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from bench_matrix.matrix.requirements import Declared
 from bench_matrix.tensors import TensorSpec
 from bench_matrix.workload.driving.defaults import DEFAULT_DATASET
 
@@ -181,6 +182,7 @@ class Matrix:
     backend_options: dict[str, dict[str, Any]] = field(default_factory=dict)  # per backend, its own options
     metrics: tuple[str, ...] = ()  # metric plugins to add to every cell's evaluation
     scenarios: dict[str, Any] = field(default_factory=dict)  # a selectable scenario's name -> its section
+    requirements: Declared = field(default_factory=Declared)  # the top level's and each model's own
     lines: dict[tuple, int] = field(default_factory=dict, compare=False, repr=False)
 
     def model(self, name: str) -> ModelSpec:

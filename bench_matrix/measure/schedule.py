@@ -72,16 +72,16 @@ class Timed:
     def add(self, number: int, window: Window) -> None:
         (self.kept if window.disturbed is None else self.dropped).setdefault(window.kind, {})[number] = window
 
-    def windows(self, kind: str, clean: bool = False) -> dict[int, Window]:
+    def windows(self, kind: str, clean: bool = False, every: bool = False) -> dict[int, Window]:
         """The windows a figure is computed from, by round: the clean ones, or (unless `clean`) every one when
-        fewer than 2 were clean."""
+        fewer than 2 were clean, or when `every`."""
         kept = self.kept.get(kind, {})
-        chosen = kept if clean or len(kept) >= 2 else {**self.dropped.get(kind, {}), **kept}
+        chosen = kept if clean or (len(kept) >= 2 and not every) else {**self.dropped.get(kind, {}), **kept}
         return dict(sorted(chosen.items()))
 
-    def series(self, kind: str, clean: bool = False) -> dict[int, np.ndarray]:
+    def series(self, kind: str, clean: bool = False, every: bool = False) -> dict[int, np.ndarray]:
         """Those windows' durations in ms, by round."""
-        return {r: w.durations_ms for r, w in self.windows(kind, clean).items()}
+        return {r: w.durations_ms for r, w in self.windows(kind, clean, every).items()}
 
     def disturbed_share(self) -> float:
         windows = sum(len(v) for v in self.kept.values()) + sum(len(v) for v in self.dropped.values())
@@ -89,10 +89,14 @@ class Timed:
 
 
 def paired(baseline: Timed | None, timed: Timed, clean: bool = False) -> Interval | None:
-    """The cell's speed-up against the baseline, paired by round."""
+    """The cell's speed-up against the baseline, paired by round: over the rounds both had clean, or (unless
+    `clean`) every round both had when fewer than 2 were clean: what disturbs a round disturbs both."""
     if baseline is None:
         return None
-    return speedup(*(medians_by_round(t.series(LATENCY, clean)) for t in (baseline, timed)))
+    found = speedup(*(medians_by_round(t.series(LATENCY, clean=True)) for t in (baseline, timed)))
+    if found is not None or clean:
+        return found
+    return speedup(*(medians_by_round(t.series(LATENCY, every=True)) for t in (baseline, timed)))
 
 
 def narrow(timed: Timed, baseline: Timed | None, settings: RoundsSettings) -> bool:

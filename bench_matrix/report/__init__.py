@@ -6,13 +6,14 @@ from __future__ import annotations
 import sqlite3
 import sys
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from bench_matrix.errors import UserError
+from bench_matrix.report.judging import SCOPE, Judging, judged
 from bench_matrix.report.summary import Report, summarize
 from bench_matrix.store import CellRecord, ResultStore, RunInfo
 
@@ -21,7 +22,8 @@ if TYPE_CHECKING:
 
 FORMATS = ("table", "md", "html", "json", "csv")
 VIEW_KEYS = ("host", "model", "backend")
-__all__ = ["FORMATS", "VIEW_KEYS", "Loaded", "View", "load", "write_report"]
+__all__ = ["FORMATS", "VIEW_KEYS", "Judging", "Loaded", "View", "load", "load_judged", "write_loaded",
+           "write_report"]
 
 
 @dataclass(frozen=True)
@@ -38,13 +40,14 @@ class View:
 
 @dataclass(frozen=True)
 class Loaded:
-    """The records a view selected, their summary, and the raw latencies and batch durations (ms) of the ok
-    ones by record id."""
+    """The records a view selected, their summary, the raw latencies and batch durations (ms) of the ok ones
+    by record id, and the requirements runs stored (by matrix path)."""
 
     records: list[CellRecord]
     report: Report
     samples: Mapping[int, np.ndarray]
     batches: Mapping[int, np.ndarray] = field(default_factory=dict)
+    requirements: Mapping[str, Any] = field(default_factory=dict)
 
 
 def _field(record: CellRecord, key: str) -> str:
@@ -76,10 +79,19 @@ def load(store_path: str | Path, view: View = View(), with_samples: bool = False
         ok = [r for r in records if with_samples and r.status == "ok"]
         samples, batches = ({r.id: store.samples(r, series) for r in ok}
                             for series in ("latency_ms", "batch_ms"))
+        requirements = store.facts(SCOPE)
     finally:
         store.close()
     about = run_facts(run or runs[-1], len(runs)) if runs else {}
-    return Loaded(records, summarize(records, infos, about), _present(samples), _present(batches))
+    return Loaded(records, summarize(records, infos, about), _present(samples), _present(batches),
+                  requirements)
+
+
+def load_judged(store_path: str | Path, view: View = View(), judging: Judging = Judging(),
+                with_samples: bool = False) -> Loaded:
+    """`load`, with each model judged against its requirements (report/judging.py)."""
+    loaded = load(store_path, view, with_samples)
+    return replace(loaded, report=judged(loaded.report, loaded.requirements, judging))
 
 
 def _present(series: dict[int, np.ndarray | None]) -> dict[int, np.ndarray]:
@@ -105,16 +117,20 @@ def run_facts(run: RunInfo, runs: int) -> dict:
 
 
 def write_report(store_path: str | Path, fmt: str, out_dir: str | Path, console: Console,
-                 view: View = View()) -> list[Path]:
+                 view: View = View(), judging: Judging = Judging()) -> list[Path]:
     """Report the store in `fmt` (see FORMATS); return the files written (none for json, which goes to
     stdout)."""
     if fmt not in FORMATS:
         raise UserError(f"unknown report format '{fmt}'; choose one of: {', '.join(FORMATS)}")
-    loaded = load(store_path, view, with_samples=fmt in ("table", "md", "html"))
-    out = Path(out_dir)
+    loaded = load_judged(store_path, view, judging, with_samples=fmt in ("table", "md", "html"))
+    return write_loaded(loaded, fmt, Path(out_dir), console)
+
+
+def write_loaded(loaded: Loaded, fmt: str, out: Path, console: Console) -> list[Path]:
+    """Write a judged report in `fmt`; return the files written."""
     if fmt == "json":
-        from bench_matrix.report.export import records_json
-        sys.stdout.write(records_json(loaded.records))
+        from bench_matrix.report.export import report_json
+        sys.stdout.write(report_json(loaded.records, loaded.report))
         sys.stdout.flush()
         return []
     if fmt == "csv":

@@ -100,6 +100,10 @@ def _gpu_mb(m: Measurement) -> float | None:
 
 HOST = Column("Host", "the machine that measured the cell (shown when this model's cells come from more "
               "than one).", lambda r: r.record.host or DASH, "")
+VERDICT = Column("Verdict", "against the model's requirements (see Verdict): pass; fail, with each "
+                 "requirement missed and by how much; uncertain, with the timed figure whose 95 % interval "
+                 "straddles its limit.", lambda r: r.verdict.short() if r.verdict is not None else DASH, "",
+                 optional=True)
 SIZE, ACCURACY, SPEED, THROUGHPUT = "size", "accuracy", "speed", "throughput"
 LEADING: tuple[Column, ...] = (
     Column("Method", "backend, strategy and precision (and target when not cpu) of the cell.", _method, ""),
@@ -219,7 +223,7 @@ def model_columns(model: ModelSummary) -> tuple[Column, ...]:
     """Every column of the model's results table: its task's accuracy columns and its plugins' figures."""
     accuracy = ACCURACY_COLUMNS.get(model.task, ACCURACY_COLUMNS["none"])
     host = (HOST,) if len(hosts(model)) > 1 else ()
-    return (LEADING[0], *host, *LEADING[1:], *accuracy, *_plugin_columns(model.rows), *TRAILING)
+    return (LEADING[0], *host, VERDICT, *LEADING[1:], *accuracy, *_plugin_columns(model.rows), *TRAILING)
 
 
 def hosts(model: ModelSummary) -> tuple[str, ...]:

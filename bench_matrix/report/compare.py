@@ -11,7 +11,9 @@ flagged for interference on either side (every attempt disturbed) is not compara
 both records have a speed-up paired by round against their baseline (docs/metrics.md §5), p50 is judged on it
 instead: drift of the machine between the two runs cancels in it, and it changes when the two speed-ups'
 95 % intervals tell them apart (the difference of their logarithms beyond both half-widths combined), beyond
-the p50 threshold. Size and accuracy (deterministic) are judged by their threshold alone.
+the p50 threshold. With `--remeasure` both sides' artifacts were timed again here in the same rounds, and p50
+is judged on the new artifact's time ÷ its base twin's, paired by round: changed when its interval excludes 1,
+beyond the threshold. Size and accuracy (deterministic) are judged by their threshold alone.
 
 Changes are relative ((new - base) / base) for p50, p99, throughput, size and error metrics where lower is
 better (mse); absolute (new - base) for fractions where higher is better (top1, cosine_similarity). A
@@ -31,7 +33,7 @@ from scipy.stats import fisher_exact, mannwhitneyu
 
 from bench_matrix.errors import UserError
 from bench_matrix.measure.metrics import DIRECTIONS, HEADLINE
-from bench_matrix.measurement import Measurement
+from bench_matrix.measurement import Measurement, Speedup
 from bench_matrix.report.summary import disturbed_phases, figure, headline
 from bench_matrix.store import CellRecord
 
@@ -103,6 +105,7 @@ class Comparison:
     thresholds: Mapping[str, float]  # p50, p99, throughput, size, accuracy_relative, accuracy_absolute
     alpha: float
     test: str = TEST
+    remeasured: bool = False  # the timed figures are from timing both sides' artifacts again, in rounds
 
     @property
     def regressions(self) -> list[tuple[str, str]]:
@@ -141,15 +144,16 @@ def effective_thresholds(thresholds: Mapping[str, float] | None) -> dict[str, fl
 
 
 def compare(base: Side, new: Side, thresholds: Mapping[str, float] | None = None, alpha: float = ALPHA,
-            tasks: Mapping[str, str] | None = None) -> Comparison:
-    """Compare every cell key of `base` and `new`; `tasks` (model -> task) is used where a side has none."""
+            tasks: Mapping[str, str] | None = None, twins: Mapping[str, Speedup] | None = None) -> Comparison:
+    """Compare every cell key of `base` and `new`; `tasks` (model -> task) is used where a side has none;
+    `twins`: each remeasured cell's base time ÷ new time, paired by round (then the sides are remeasured)."""
     limits = effective_thresholds(thresholds)
     before, after = _by_key(base.records), _by_key(new.records)
     cells = []
     for key in sorted(set(before) | set(after), key=lambda k: ((before.get(k) or after[k]).cell.model, k)):
-        pair = _Pair(base, new, before.get(key), after.get(key), tasks or {})
+        pair = _Pair(base, new, before.get(key), after.get(key), tasks or {}, (twins or {}).get(key))
         cells.append(_compare_cell(key, pair, limits, alpha))
-    return Comparison(base.label, new.label, tuple(cells), limits, alpha)
+    return Comparison(base.label, new.label, tuple(cells), limits, alpha, remeasured=twins is not None)
 
 
 def _by_key(records: Iterable[CellRecord]) -> dict[str, CellRecord]:
@@ -170,6 +174,7 @@ class _Pair:
     before: CellRecord | None
     after: CellRecord | None
     tasks: Mapping[str, str]
+    twin: Speedup | None = None  # remeasured: base time ÷ new time, paired by round
 
     def roles(self) -> tuple[tuple[str, Side, CellRecord | None], ...]:
         return ("base", self.base, self.before), ("new", self.new, self.after)
@@ -197,7 +202,7 @@ def _compare_cell(key: str, pair: _Pair, limits: Mapping[str, float], alpha: flo
     why = _cell_problem(pair)
     if why:
         return CellComparison(key, cell.model, cell.label, (), NOT_COMPARABLE, why, _disturbed(pair))
-    p50 = _paired(pair, limits) or _latency(pair, "p50", limits, alpha)
+    p50 = _twinned(pair, limits) or _paired(pair, limits) or _latency(pair, "p50", limits, alpha)
     changes = (p50, _latency(pair, "p99", limits, alpha), _throughput(pair, limits, alpha),
                _size(pair, limits), _accuracy(pair, limits))
     found = {c.verdict for c in changes}
@@ -275,6 +280,18 @@ def _paired(pair: _Pair, limits: Mapping[str, float]) -> MetricChange | None:
     spread = math.hypot(math.log1p(base.ci_half), math.log1p(new.ci_half))
     apart = abs(math.log(new.value / base.value)) > spread
     return judge.judged(significant=apart)
+
+
+def _twinned(pair: _Pair, limits: Mapping[str, float]) -> MetricChange | None:
+    """p50 of a remeasured cell, judged on the new artifact's time ÷ its base twin's in the same rounds (the
+    new p50 shown: the base's times that ratio): changed when its interval excludes 1, past the threshold."""
+    twin = pair.twin
+    base = figure(pair.before, lambda m: m.latency and m.latency.p50) if pair.before else None
+    if twin is None or twin.value is None or not twin.ci or base is None:
+        return None
+    judge = _MetricJudge("p50", "latency_ms.p50 (paired)", base, base / twin.value, True, limits["p50"],
+                         "lower")
+    return judge.judged(significant=not twin.ci[0] <= 1.0 <= twin.ci[-1])
 
 
 def _shift_p_value(before: np.ndarray, after: np.ndarray) -> float:

@@ -43,11 +43,19 @@ def method_line(comparison: Comparison) -> str:
     limits = comparison.thresholds
     return (f"Timed metrics: {comparison.test}, on the raw samples; a change counts when p < "
             f"{comparison.alpha:g} and it is beyond its threshold; p50 on the speed-up paired by round "
-            f"where both sides have one (×: its 95 % intervals apart). Size and accuracy: threshold only. "
+            f"where both sides have one (×: its 95 % intervals apart)" + _remeasured(comparison) + ". Size "
+            f"and accuracy: threshold only. "
             f"Thresholds: p50 {_percent(limits['p50'])}, p99 {_percent(limits['p99'])}, throughput "
             f"{_percent(limits['throughput'])}, size {_percent(limits['size'])}, accuracy "
             f"{_percent(limits['accuracy_relative'])} relative for error metrics (mse), "
             f"{limits['accuracy_absolute']:g} absolute for fractions (top1, cosine_similarity).")
+
+
+def _remeasured(comparison: Comparison) -> str:
+    if not comparison.remeasured:
+        return ""
+    return ("; remeasured: both sides' artifacts timed again on this machine in the same interleaved rounds, "
+            "p50 judged on the new time ÷ the base time paired by round (its 95 % interval excludes 1)")
 
 
 def title_line(comparison: Comparison) -> str:
@@ -139,7 +147,7 @@ def _emphasis(text: str, verdict: str) -> str:
 def comparison_json(comparison: Comparison) -> dict[str, Any]:
     """Every number, verdict and p-value, the thresholds, alpha and test; non-finite numbers become null."""
     return {"base": comparison.base, "new": comparison.new, "test": comparison.test,
-            "alpha": comparison.alpha,
+            "alpha": comparison.alpha, "remeasured": comparison.remeasured,
             "thresholds": {k: _finite(v) for k, v in comparison.thresholds.items()},
             "summary": comparison.counts(),
             "regressions": [{"cell": key, "metric": metric} for key, metric in comparison.regressions],

@@ -23,24 +23,39 @@ CSV_COLUMNS = (*CELL_COLUMNS, "status", "reason", "size_bytes", "size_mib", "siz
                "finetune_s", "sparsity", "clusters", "load_s", "threads", "outputs_sha256",
                "artifact_cached", "speedup_vs_baseline", "size_ratio_vs_baseline", "mse_delta_vs_baseline",
                "task", "top1", "top5", "top1_agreement", "cosine_similarity", "snr_db",
-               "accuracy_delta_vs_baseline", "interference_flagged", "interference_reason")
+               "accuracy_delta_vs_baseline", "interference_flagged", "interference_reason", "verdict",
+               "verdict_missed")
 
 
-def records_json(records: list[CellRecord]) -> str:
-    """A JSON array of `CellRecord.to_json()` for every record, in store order."""
-    return json.dumps([record.to_json() for record in records], indent=2) + "\n"
+def report_json(records: list[CellRecord], report: Report) -> str:
+    """The JSON report: each model's requirements, the recommendations, and every record
+    (`CellRecord.to_json()`, in store order) with its verdict where it has one."""
+    verdicts = {_identity(row.record): row.verdict for model in report.models for row in model.rows}
+    found = []
+    for record in records:
+        verdict = verdicts.get(_identity(record))
+        found.append({**record.to_json(), **({"verdict": verdict.to_json()} if verdict else {})})
+    required = {m.name: {"from": m.requirements_from, "requirements": dict(m.requirements.data)}
+                for m in report.models if m.requirements is not None}
+    recommended = [r.to_json() for model in report.models for r in model.recommendations]
+    data = {"requirements": required, "recommendations": recommended, "records": found}
+    return json.dumps(data, indent=2) + "\n"
+
+
+def _identity(record: CellRecord) -> tuple[int | None, str, str | None]:
+    return record.id, record.cell.key, record.host
 
 
 def write_csv(records: list[CellRecord], report: Report, path: Path) -> Path:
     """Write one row per record (missing values empty) to `path` and return it."""
-    rows = {row.record.id: row for model in report.models for row in model.rows}
+    rows = {_identity(row.record): row for model in report.models for row in model.rows}
     tasks = {model.name: model.task for model in report.models}
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="", encoding="utf-8") as handle:
         writer = csv.DictWriter(handle, fieldnames=CSV_COLUMNS, lineterminator="\n")
         writer.writeheader()
         for record in records:
-            writer.writerow(csv_row(record, rows.get(record.id), tasks.get(record.cell.model, "")))
+            writer.writerow(csv_row(record, rows.get(_identity(record)), tasks.get(record.cell.model, "")))
     return path
 
 
@@ -78,6 +93,10 @@ def csv_row(record: CellRecord, row: Row | None, task: str) -> dict[str, Any]:
     out["size_ratio_vs_baseline"] = _plain(row.size_ratio if row else None)
     out["mse_delta_vs_baseline"] = _plain(row.mse_delta if row else None)
     out["accuracy_delta_vs_baseline"] = _plain(row.accuracy_delta if row else None)
+    verdict = row.verdict if row else None
+    out["verdict"] = verdict.status if verdict else ""
+    named = (verdict.failed or verdict.uncertain) if verdict else ()
+    out["verdict_missed"] = " | ".join(check.text for check in named)
     return out
 
 

@@ -23,6 +23,7 @@ from bench_matrix.report.text import (
 from bench_matrix.report.html_parts import SCRIPT, STYLE, Html, esc, figure, table
 from bench_matrix.report.plots import Plot
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
+from bench_matrix.report.verdict_view import HEADERS, INTRO, NUMERIC, closest_lines, requirement_lines, rows
 from bench_matrix.scenarios import selectable
 
 TITLE = "bench-matrix report"
@@ -38,7 +39,8 @@ def write_html(report: Report, plots: Mapping[str, Sequence[Plot]], path: Path) 
 def page(report: Report, plots: Mapping[str, Sequence[Plot]]) -> str:
     """The HTML document: byte-identical for a given report and plot files."""
     sections = [_model_section(k, m, plots.get(m.name, ())) for k, m in enumerate(report.models)]
-    body = [f"<h1>{TITLE}</h1>", f'<p class="meta">{esc(run_line(report))}</p>', "<h2>Models</h2>",
+    body = [f"<h1>{TITLE}</h1>", f'<p class="meta">{esc(run_line(report))}</p>', *_verdict(report),
+            "<h2>Models</h2>",
             _overview(report), f"<p>Speed-up = baseline p50 ÷ fastest cell p50, both at batch 1. "
             f"{esc(HEADLINE_NOTE)}</p>", *sections,
             "<h2>Environment (all cells)</h2>", _environment(report.environment)]
@@ -46,6 +48,16 @@ def page(report: Report, plots: Mapping[str, Sequence[Plot]]) -> str:
             "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n"
             f"<title>{TITLE}</title>\n<style>{STYLE}</style>\n</head>\n<body>\n"
             + "\n".join(body) + f"\n<script>{SCRIPT}</script>\n</body>\n</html>\n")
+
+
+def _verdict(report: Report) -> list[str]:
+    """The Verdict section: requirements, the recommended cells, the closest where none passes."""
+    lines = "".join(f"<li>{esc(line)}</li>" for line in requirement_lines(report.models))
+    parts = ["<h2>Verdict</h2>", f"<p>{esc(INTRO)}</p>", f"<ul>{lines}</ul>"]
+    if found := rows(report.models):
+        parts.append(table(list(HEADERS), NUMERIC, found))
+    closest = closest_lines(report.models)
+    return parts + [f'<p class="note bad"><strong>{esc(line)}</strong></p>' for line in closest]
 
 
 def _anchor(index: int) -> str:

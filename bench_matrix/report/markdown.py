@@ -25,6 +25,7 @@ from bench_matrix.report.text import (
 )
 from bench_matrix.report.plots import Plot
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
+from bench_matrix.report.verdict_view import HEADERS, INTRO, NUMERIC, closest_lines, requirement_lines, rows
 from bench_matrix.scenarios import selectable
 from bench_matrix.store import CellRecord
 
@@ -59,7 +60,8 @@ def write_pages(report: Report, out_dir: Path, plots: Mapping[str, Sequence[Plot
 
 def index_page(report: Report) -> str:
     """Run summary, one line per model (fastest cell, its task's accuracy, link) and the environment."""
-    lines = ["# bench-matrix report", "", run_line(report), "", "## Models", "",
+    lines = ["# bench-matrix report", "", run_line(report), "", *verdict(report.models, INTRO),
+             "## Models", "",
              _table(["Model", "Framework", "ok", "skipped", "failed", "Fastest cell", "p50 ms", "Speed-up",
                      "Accuracy"], [False, False, True, True, True, False, True, True, False],
                     [_index_row(m) for m in report.models]),
@@ -79,7 +81,8 @@ def model_page(model: ModelSummary, plots: Sequence[Plot], out_dir: Path) -> str
     """The model's results table with column notes, its plots (paths relative to `out_dir`), each
     scenario's section, skipped cells grouped by reason, failed cells, and the environment."""
     lines = [f"# {_escape(model.name)}", "", "[← all models](index.md)", "",
-             _escape_text(model_line(model, _code)), "", _escape(accuracy_line(model)), ""]
+             _escape_text(model_line(model, _code)), "", _escape(accuracy_line(model)), "",
+             *verdict([model])]
     note = baseline_note(model)
     if note:
         lines += [f"> **Note:** {note}", ""]
@@ -105,6 +108,15 @@ def model_page(model: ModelSummary, plots: Sequence[Plot], out_dir: Path) -> str
             lines += _failure(record)
     lines += ["## Environment", "", *_environment(model.environment)]
     return "\n".join(lines) + "\n"
+
+
+def verdict(models: Sequence[ModelSummary], intro: str = "") -> list[str]:
+    """The "Verdict" section: requirements, the recommended cells, the closest where none passes."""
+    lines = ["## Verdict", "", *([_escape(intro), ""] if intro else [])]
+    lines += [f"- {_escape_text(line)}" for line in requirement_lines(models)] + [""]
+    if found := rows(models):
+        lines += [_table([h for h, _ in HEADERS], NUMERIC, [[_escape(c) for c in row] for row in found]), ""]
+    return lines + [line for text in closest_lines(models) for line in (f"> **{_escape(text)}**", "")]
 
 
 def _plots(plots: Sequence[Plot], out_dir: Path) -> list[str]:

@@ -31,6 +31,8 @@ class Point:
     size_bytes: float | None
     ci: tuple[float, float] | None
     optimal: bool
+    verdict: str | None = None  # pass, fail or uncertain against the model's requirements; None: none given
+    recommended: bool = False  # the recommended cell of its target
 
 
 @dataclass(frozen=True)
@@ -74,9 +76,11 @@ def points(model: ModelSummary) -> tuple[list[Point], list[CellRecord]]:
         else:
             kept.append((row.record, latency, accuracy))
     optimal = pareto_optimal([(latency, accuracy) for _, latency, accuracy in kept], higher)
+    verdicts = {id(row.record): row.verdict.status for row in model.rows if row.verdict is not None}
+    best = {id(r.best) for r in model.recommendations if r.best is not None}
     found = [Point(number=k + 1, record=record, latency_ms=latency, accuracy=accuracy,
                    size_bytes=figure(record, lambda m: m.size.bytes), ci=_interval(record),
-                   optimal=optimal[k])
+                   optimal=optimal[k], verdict=verdicts.get(id(record)), recommended=id(record) in best)
              for k, (record, latency, accuracy) in enumerate(kept)]
     return found, left_out
 

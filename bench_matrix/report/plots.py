@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from bench_matrix.report import pareto_marks
 from bench_matrix.report.columns import APPROXIMATE, cell_names, sig
 from bench_matrix.report.pareto import Box, Point, accuracy_metric, place_labels, points, reference_sizes
 from bench_matrix.report.summary import ModelSummary, disturbed_phases, wide_phases
@@ -95,6 +96,9 @@ def pareto_plot(model: ModelSummary, path: Path) -> Plot | None:
     alt = (f"Pareto chart of {model.name}: p50 latency in ms against {AXIS_NAMES.get(name, name)} "
            f"({'higher' if higher else 'lower'} is better) for {len(found)} cells, marker area proportional "
            f"to artifact size. Pareto-optimal: {optimal}.")
+    if any(p.verdict for p in found):
+        passing = ", ".join(_name(model, p.record) for p in found if p.verdict == "pass") or "none"
+        alt += f" Passing the requirements (green rings): {passing}."
     if left_out:
         alt += f" Not shown (no latency or {name}): {', '.join(_name(model, r) for r in left_out)}."
     return Plot("pareto", f"{model.name}: latency against accuracy", path, alt)
@@ -129,7 +133,8 @@ def pareto_figure(model: ModelSummary, found: Sequence[Point]) -> Any:
     extent = legend.get_window_extent(figure.canvas.get_renderer())
     width = max(WIDTH_IN, LEFT + AXES_W + LEGEND_GAP + extent.width / DPI + 0.1)
     entries = [(f"{p.number}: {_plain(_name(model, p.record))}{' *' if p.optimal else ''}"
-                f"{APPROXIMATE if _approximate(p.record) else ''}", p.optimal) for p in found]
+                f"{APPROXIMATE if _approximate(p.record) else ''}{pareto_marks.mark(p)}", p.optimal)
+               for p in found]
     column_w = max(_text_size(figure, text, FONT, bold)[0] for text, bold in entries) / DPI + 0.3
     rows = -(-len(entries) // max(1, min(len(entries), int((width - LEFT) // column_w))))
     axes_h = max(AXES_H_MIN, extent.height / DPI)
@@ -141,14 +146,15 @@ def pareto_figure(model: ModelSummary, found: Sequence[Point]) -> Any:
     _draw_points(axes, found, style, scale)
     _label_axes(axes, model)
     _number_points(axes, found, scale)
-    _draw_key(figure, entries, height - TOP - axes_h - BELOW_AXES, column_w, rows)
+    _draw_key(figure, entries, height - TOP - axes_h - BELOW_AXES, column_w, rows, pareto_marks.note(found))
     return figure
 
 
-def _draw_key(figure: Any, entries: Sequence[tuple[str, bool]], top: float, column_w: float, rows: int
-              ) -> None:
+def _draw_key(figure: Any, entries: Sequence[tuple[str, bool]], top: float, column_w: float, rows: int,
+              marks: list[str]) -> None:
     """The "number: cell" list below the axes, column by column from `top` (inches), optimal cells bold."""
-    notes = ["number on the chart, backend strategy precision [target]", "* Pareto-optimal (bold, ringed)"]
+    notes = ["number on the chart, backend strategy precision [target]", "* Pareto-optimal (bold, ringed)",
+             *marks]
     if any(text.endswith(APPROXIMATE) for text, _ in entries):
         notes.append("~ latency disturbed or its interval too wide (see the page)")
     figure.text(LEFT, top, "Cells: " + ";  ".join(notes), fontsize=FONT, transform=figure.dpi_scale_trans,
@@ -169,6 +175,7 @@ def _draw_points(axes: Any, found: Sequence[Point], style: Style, scale: float) 
                      c=[style.colours[p.record.cell.backend] for p in group], marker=style.markers[precision],
                      alpha=0.9 if optimal else 0.55, edgecolors="black" if optimal else "white",
                      linewidths=1.6 if optimal else 0.6, zorder=4 if optimal else 3)
+    pareto_marks.draw(axes, found, scale, lambda p: marker_area(p.size_bytes, largest))
     front = sorted((p.latency_ms, p.accuracy * scale) for p in found if p.optimal)
     axes.step([x for x, _ in front], [y for _, y in front], where="post", color="black", linewidth=1.0,
               linestyle="--", zorder=1)
@@ -260,9 +267,11 @@ def _pareto_legend(figure: Any, found: Sequence[Point], style: Style) -> Any:
               entry("front line", color="black", linestyle="--", linewidth=1.0)]
     if any(p.ci for p in found):
         items.append(entry("p50 95 % CI", color="0.4", marker="|", markersize=8, linestyle="-"))
+    items += pareto_marks.legend_entries(found)
     legend = figure.legend([h for h, _ in items], [label for _, label in items], loc="upper left",
                            fontsize=FONT, frameon=False, handletextpad=0.6, borderaxespad=0.0)
-    headers = {"Backend (colour)", "Precision (marker)", "Artifact size (area)", "Pareto front"}
+    headers = {"Backend (colour)", "Precision (marker)", "Artifact size (area)", "Pareto front",
+               pareto_marks.HEADER}
     for text in legend.get_texts():
         if text.get_text() in headers:
             text.set_fontweight("bold")

@@ -5,12 +5,17 @@ from __future__ import annotations
 import json
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from bench_matrix.measure.affinity import NOT_EXPOSED
 from bench_matrix.measure.metrics import HEADLINE
 from bench_matrix.measurement import Measurement
 from bench_matrix.store import CellRecord
+
+if TYPE_CHECKING:
+    from bench_matrix.matrix.requirements import Requirements
+    from bench_matrix.report.recommend import Recommendation
+    from bench_matrix.report.verdict import Verdict
 
 STATUSES = ("ok", "skipped", "failed")
 # (label, env key) of the hardware/software fields shown in environment blocks, in display order.
@@ -33,6 +38,7 @@ class Row:
     speedup_own_fp32: float | None = None  # vs the same backend's fp32 cell (strategy none, same target)
     speedup_half: float | None = None  # the paired speed-up's 95 % interval, its larger side relative
     accuracy_delta: float | None = None  # the task's headline metric (HEADLINE) minus the baseline's
+    verdict: Verdict | None = None  # against the model's requirements (report/judging.py); None: none given
 
 
 @dataclass(frozen=True)
@@ -61,6 +67,9 @@ class ModelSummary:
     suspects: tuple[str, ...] = ()  # cells at different precisions whose test outputs are bit-identical
     disturbed: tuple[str, ...] = ()  # cells flagged for interference (every attempt of a phase), and why
     wide: tuple[str, ...] = ()  # cells whose latency interval stayed wider than the target (older: drifted)
+    requirements: Requirements | None = None  # what its cells were judged against; None: nothing declared
+    requirements_from: str = ""  # where they were read
+    recommendations: tuple[Recommendation, ...] = ()  # per target (and host) its cells ran on
 
     @property
     def task(self) -> str:

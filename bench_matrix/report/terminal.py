@@ -30,6 +30,14 @@ from bench_matrix.report.text import (
     skip_reason,
 )
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
+from bench_matrix.report.verdict_view import (
+    HEADERS,
+    NONE_PASSES,
+    NUMERIC,
+    closest_lines,
+    requirement_lines,
+    rows,
+)
 from bench_matrix.scenarios import selectable
 from bench_matrix.store import CellRecord
 
@@ -41,11 +49,30 @@ _LAYOUTS = (((SIZE, ACCURACY, SPEED, THROUGHPUT),), ((SIZE, ACCURACY), (SPEED, T
 def print_report(report: Report, console: Console) -> None:
     """Print the run line, every model's tables and the environment panel."""
     console.print(Text(run_line(report)))
+    print_verdict(report.models, console)
     if len(report.models) > 1:
         console.print(_overview(report))
     for model in report.models:
         _print_model(model, console)
     console.print(environment_panel(report.environment, "Environment (all cells)"))
+
+
+def print_verdict(models: tuple[ModelSummary, ...], console: Console) -> None:
+    """The Verdict section: each model's requirements, the recommended cells, and the closest where none
+    passes."""
+    console.rule(Text("Verdict", style="bold"))
+    for line in requirement_lines(models):
+        console.print(Text(line, style="dim"))
+    found = rows(models)
+    if found:
+        table = Table(title="Recommended cell per model and target", title_justify="left")
+        for (header, _), numeric in zip(HEADERS, NUMERIC):
+            table.add_column(header, justify="right" if numeric else "left", overflow="fold")
+        for row in found:
+            table.add_row(*row, style="red" if row[2] == NONE_PASSES else None)
+        console.print(table)
+    for line in closest_lines(models):
+        console.print(Text(line, style="red"))
 
 
 def _overview(report: Report) -> Table:

@@ -14,6 +14,7 @@ if TYPE_CHECKING:
     from bench_matrix.matrix.spec import DatasetSpec, Matrix, ModelSpec
     from bench_matrix.matrix.yamlpos import Located
     from bench_matrix.measure.gpu import GpuMemory
+    from bench_matrix.measurement import Measurement
     from bench_matrix.report.plots import Plot
     from bench_matrix.report.summary import ModelSummary
 
@@ -56,6 +57,8 @@ class Scenario:
     name: ClassVar[str]  # the matrix section's key, the Planned's name and its record fields' prefix
     title: ClassVar[str]  # the plan view's column
     schema: ClassVar[dict[str, Any]]  # JSON Schema of the section
+    # requirement keys it adds under its name in `requirements`: key -> ("min" or "max", what the figure is)
+    requirements: ClassVar[dict[str, tuple[str, str]]] = {}
 
     def read(self, data: dict[str, Any], loading: Loading) -> Any:
         """The typed section from its schema-valid data; problems go to `loading.report`."""
@@ -64,6 +67,10 @@ class Scenario:
     def plan(self, section: Any, matrix: Matrix, cell: Any) -> Planned | None:
         """The scenario for this cell, or None when the section does not select it."""
         raise NotImplementedError
+
+    def figure(self, key: str, metrics: Measurement) -> float | None:
+        """The stored figure requirement `key` bounds, or None when the record has none."""
+        return None
 
     def markdown(self, model: ModelSummary, table: Any, escape: Any) -> list[str]:
         return []

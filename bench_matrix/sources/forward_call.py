@@ -1,6 +1,6 @@
 """How a factory's module takes the model's inputs. Every backend calls it with them positionally, in their
-order; named after forward's parameters but in another order (or only some of them), they are passed on
-under their own names. Inputs that cannot be matched are refused at plan time."""
+order; named after forward's parameters but not all of them in their order, they are passed on under their own
+names. Inputs that cannot be matched are refused at plan time."""
 
 from __future__ import annotations
 
@@ -37,10 +37,12 @@ def forward_parameters(module: "torch.nn.Module") -> tuple[Parameter, ...]:
 
 
 def by_name(params: Sequence[Parameter], names: Sequence[str]) -> bool:
-    """Whether forward gets the inputs by name: each is one of its named parameters, and they are not already
-    its first positional parameters in this order."""
+    """Whether forward gets the inputs by name: each is one of its named parameters, and they are not exactly
+    its parameters in this order (forward has others, such as a Hugging Face model's inputs_embeds=None, which
+    tracers would otherwise see as inputs too)."""
     named = {p.name for p in params if p.kind in NAMED}
-    return not _in_order(params, names) and all(name in named for name in names)
+    exactly = _in_order(params, names) and len(names) == len(params)
+    return not exactly and all(name in named for name in names)
 
 
 def _positional(params: Sequence[Parameter]) -> list[str]:
@@ -94,7 +96,8 @@ def for_inputs(module: "torch.nn.Module", names: Sequence[str]) -> "torch.nn.Mod
 
 def keyword_forward(module: "torch.nn.Module", names: Sequence[str]) -> "torch.nn.Module":
     """`module` itself, its class swapped for one whose forward takes `names` positionally and passes them on
-    by name: its state_dict keys stay, and tracers (jit, FX, torch.export, ONNX) see one named input each."""
+    by name: its state_dict keys stay, and tracers (jit, FX, torch.export, ONNX) see one named input each and
+    none of forward's other parameters (they keep their defaults)."""
     base = type(module)
     code = (f"def forward(__module, {', '.join(names)}):\n"
             f"    return __forward(__module, {', '.join(f'{name}={name}' for name in names)})\n")

@@ -13,6 +13,7 @@ from bench_matrix.sources import ModelFileError
 if TYPE_CHECKING:
     import onnx
 
+ONNX_DOMAINS = ("", "ai.onnx.ml", "ai.onnx.preview", "ai.onnx.preview.training")  # ONNX's own operator sets
 EXPORT = "export the model again (torch.onnx.export, tf2onnx) and give the .onnx file it writes"
 EXTERNAL = ("keep external data files inside the model's directory and save the model with a relative "
             "location (onnx.save_model(model, path, save_as_external_data=True, location='weights.data'))")
@@ -26,6 +27,7 @@ def load_onnx(path: Path, label: str) -> "onnx.ModelProto":
     """The model in `path` with its external data read in; ModelFileError naming `label` when it is not a
     valid ONNX model or keeps data outside its directory."""
     model = parse_onnx(path, label)
+    _check_operators(model, label)
     _load_external_data(model, path, label)
     return model
 
@@ -60,6 +62,42 @@ def external_data_files(path: Path) -> list[Path]:
     locations = {ExternalDataInfo(t).location for t in tensors if uses_external_data(t)}
     readable = (location for location in locations if _location_problem(base, location) is None)
     return sorted(path.parent / location for location in readable)
+
+
+def _check_operators(model: "onnx.ModelProto", label: str) -> None:
+    """Refuse a node whose operator is in one of ONNX's own domains but not defined there at the opset the
+    model imports: no runtime can run it."""
+    import onnx
+
+    versions = {_domain(o.domain): o.version for o in model.opset_import}
+    local = {(f.domain, f.name) for f in model.functions}
+    for node in model.graph.node:
+        domain = _domain(node.domain)
+        if domain not in ONNX_DOMAINS or domain not in versions or (node.domain, node.op_type) in local:
+            continue
+        try:
+            onnx.defs.get_schema(node.op_type, versions[domain], domain)
+        except onnx.defs.SchemaError:
+            raise ModelFileError(_operator_problem(node, domain, versions[domain], label)) from None
+
+
+def _operator_problem(node: "onnx.NodeProto", domain: str, version: int, label: str) -> str:
+    """What is wrong with a node's operator, naming the user's file, the node and what to do."""
+    import onnx
+
+    where = f"{label}: node '{node.name}'" if node.name else f"{label}: a node"
+    opset = f"operator set {domain or 'ai.onnx'}"
+    if onnx.defs.has(node.op_type, domain):
+        why = (f"which ONNX's {opset} does not define at version {version}, the one the model imports; "
+               f"export the model again at an opset that has it")
+    else:
+        why = (f"which is not an ONNX operator ({opset}, onnx {onnx.__version__}), so no runtime can run it; "
+               f"export the model again with standard ONNX operators only")
+    return f"{where} uses operator {node.op_type}, {why} (torch.onnx.export, tf2onnx)"
+
+
+def _domain(domain: str) -> str:
+    return "" if domain == "ai.onnx" else domain
 
 
 def _kind(data: bytes) -> str | None:

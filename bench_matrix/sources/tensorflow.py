@@ -6,6 +6,7 @@ import os
 from contextlib import suppress
 from typing import TYPE_CHECKING, Any
 
+from bench_matrix.phases import Epochs
 from bench_matrix.sources import ModelFileError
 from bench_matrix.sources.keras_files import RESAVE, check_keras_file
 
@@ -34,6 +35,17 @@ def keras() -> Any:
     import tf_keras
 
     return tf_keras
+
+
+def epoch_phases(total: int, what: str = "train") -> Any:
+    """A Keras callback that tells the parent each epoch's end, its loss and the time left (phases.Epochs)."""
+    epochs = Epochs(total, what)
+
+    class EpochPhases(keras().callbacks.Callback):
+        def on_epoch_end(self, epoch: int, logs: dict | None = None) -> None:
+            epochs.ended(epoch + 1, float((logs or {}).get("loss", float("nan"))))
+
+    return EpochPhases()
 
 
 def thread_settings() -> dict[str, int]:

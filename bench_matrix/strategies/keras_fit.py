@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.plugin import Inputs, TensorSpec, keras, tensorflow, training_arrays
+from bench_matrix.plugin import Inputs, TensorSpec, epoch_phases, keras, tensorflow, training_arrays
 
 LOSSES = {"regression": "mse", "classification": "cross_entropy"}
 
@@ -69,7 +69,8 @@ def fit(model: Any, data: TrainingData, lr: float, batch: int, n_epochs: int, pe
     model.compile(optimizer=k.optimizers.Adam(lr), loss=loss, loss_weights=weights)
     ds = (tf.data.Dataset.from_tensor_slices((data.model_inputs(), targets))
           .shuffle(len(data), seed=seed, reshuffle_each_iteration=True).batch(batch).repeat())
-    history = model.fit(ds, epochs=n_epochs, steps_per_epoch=per_epoch, callbacks=list(callbacks), verbose=0)
+    history = model.fit(ds, epochs=n_epochs, steps_per_epoch=per_epoch, verbose=0,
+                        callbacks=[*callbacks, epoch_phases(n_epochs, "fine-tune")])
     for layer in norms:
         layer.trainable = True
     final = float(history.history["loss"][-1])

@@ -14,8 +14,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bench_matrix.plugin import FineTuned, FineTuneRequest, Inputs, StrategySpec, TensorSpec, Trainer, \
-    installed_versions, quiet_torch, training_arrays, use_engine, weight_stats
+from bench_matrix.plugin import Epochs, FineTuned, FineTuneRequest, Inputs, StrategySpec, TensorSpec, \
+    Trainer, fx_prepare, installed_versions, quiet_torch, training_arrays, use_engine, weight_stats
 
 if TYPE_CHECKING:
     import torch
@@ -237,8 +237,11 @@ def _fit(module: nn.Module, options: dict[str, Any], data: _Data, generator: tor
             layer.eval()
     losses: list[float] = []
     order = torch.arange(len(data))
+    progress = Epochs(started, "fine-tune")
     for step in range(total):
         if step % per_epoch == 0:
+            if step:
+                progress.ended(step // per_epoch, sum(losses) / len(data))
             if on_epoch is not None:
                 on_epoch(step // per_epoch, started)
             order = torch.randperm(len(data), generator=generator)
@@ -255,6 +258,7 @@ def _fit(module: nn.Module, options: dict[str, Any], data: _Data, generator: tor
     module.eval()
     seen = (total - 1) % per_epoch * batch_size + len(index)
     final_loss = sum(losses) / seen  # the mean loss over the last (possibly partial) epoch
+    progress.ended(started, final_loss)
     if not math.isfinite(final_loss):
         raise ValueError(f"fine-tuning diverged: the {LOSSES[data.task]} loss is {final_loss} after {total} "
                          f"steps (lower lr?)")
@@ -343,11 +347,8 @@ def _qat(module: nn.Module, options: dict[str, Any], data: _Data, generator: tor
     with quiet_torch(captured=True), warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Please use quant_min and quant_max")  # torch's own qconfig
         module.train()
-        try:
-            prepared = prepare_qat_fx(module, _qat_mapping(engine), example_inputs=example)
-        except Exception as exc:  # symbolic tracing fails on data-dependent Python control flow
-            raise ValueError(f"FX graph mode cannot trace {request.source.name} for QAT: "
-                             f"{type(exc).__name__}: {exc}") from exc
+        prepared = fx_prepare(prepare_qat_fx, module, _qat_mapping(engine), example,
+                              f"model {request.source.name}")
         params = dict(prepared.named_parameters())
         if lost := sorted(set(masks) - set(params)):
             raise ValueError(f"qat after prune: FX QAT renamed the pruned weights {', '.join(lost)}; "

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from bench_matrix.matrix.spec import TrainingSpec
+from bench_matrix.phases import Epochs
 from bench_matrix.tensors import Inputs, count
 
 TASKS = ("regression", "classification")
@@ -33,6 +34,7 @@ def train_torch(factory: str, inputs: Inputs, y: np.ndarray, spec: TrainingSpec,
     generator = torch.Generator().manual_seed(seed)
     begin = time.perf_counter()
     losses = []
+    epochs = Epochs(spec.epochs)
     for _ in range(spec.epochs):
         order = torch.randperm(len(yt), generator=generator)
         total = 0.0
@@ -45,6 +47,7 @@ def train_torch(factory: str, inputs: Inputs, y: np.ndarray, spec: TrainingSpec,
             total += loss.item() * len(idx)
         scheduler.step()
         losses.append(total / len(yt))
+        epochs.ended(len(losses), losses[-1])
     train_s = time.perf_counter() - begin
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(".tmp")
@@ -58,7 +61,7 @@ def train_keras(builtin: str, inputs: Inputs, y: np.ndarray, spec: TrainingSpec,
                 threads: int, task: str = "regression") -> dict[str, Any]:
     """The Keras twin of train_torch (Adam, cosine-decayed learning rate, the task's loss); saves a .keras
     file."""
-    from bench_matrix.sources.tensorflow import keras, tensorflow
+    from bench_matrix.sources.tensorflow import epoch_phases, keras, tensorflow
     from bench_matrix.workload.pilotnet_keras import BUILDERS
 
     tf = tensorflow(threads)
@@ -72,7 +75,7 @@ def train_keras(builtin: str, inputs: Inputs, y: np.ndarray, spec: TrainingSpec,
     begin = time.perf_counter()
     x = list(inputs.values())
     history = model.fit(x[0] if len(x) == 1 else x, _labels(y, task), batch_size=spec.batch_size,
-                        epochs=spec.epochs, shuffle=True, verbose=0)
+                        epochs=spec.epochs, shuffle=True, verbose=0, callbacks=[epoch_phases(spec.epochs)])
     train_s = time.perf_counter() - begin
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f"tmp-{out.name}")  # Keras picks the format from the file ending

@@ -15,6 +15,7 @@ from bench_matrix.scenarios.closed_loop.spec import SCHEMA, ClosedLoopSpec
 
 if TYPE_CHECKING:
     from bench_matrix.cell import Cell
+    from bench_matrix.measurement import Measurement
     from bench_matrix.report.plots import Plot
     from bench_matrix.report.summary import ModelSummary
 
@@ -48,6 +49,9 @@ class ClosedLoop(Scenario):
     name = "closed_loop"
     title = "closed loop"
     schema = SCHEMA
+    requirements = {"completed_pct": ("min", "completed % of the cell's worst lap"),
+                    "deviation_mae_m": ("max", "mean deviation from the reference line of the worst lap, m"),
+                    "brain_hz": ("min", "achieved brain rate of the slowest lap, Hz")}
 
     def read(self, data: dict[str, Any], loading: Loading) -> ClosedLoopSpec:
         return closed_loop(data, loading)
@@ -59,6 +63,17 @@ class ClosedLoop(Scenario):
         model = matrix.model(cell.model)
         dataset = matrix.dataset_of(model)
         return ClosedLoopPlan(section, dataset.labels, drive_problem(model, dataset, matrix.task_of(model)))
+
+    def figure(self, key: str, metrics: Measurement) -> float | None:
+        """The worst lap's figure (every circuit and mode); None when a lap lacks it (it failed) or none
+        ran."""
+        driven = metrics.others.get("closed_loop")
+        laps = [lap for modes in driven.values() if isinstance(modes, dict) for lap in modes.values()
+                ] if isinstance(driven, dict) else []
+        values = [lap.get(key) if isinstance(lap, dict) else None for lap in laps]
+        if not values or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
+            return None
+        return float(max(values) if self.requirements[key][0] == "max" else min(values))
 
     def markdown(self, model: ModelSummary, table: Any, escape: Any) -> list[str]:
         from bench_matrix.scenarios.closed_loop import report

@@ -1,0 +1,157 @@
+"""The recommendation for each model and target (docs/results.md §8): the best passing cell by the
+objective, the runner-up and whether their interval tells them apart; when nothing passes, the cells closest
+to passing."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+from bench_matrix.report.verdict import FAIL, PASS, UNCERTAIN, Verdict, figure
+from bench_matrix.store import CellRecord
+
+CLOSEST = 3  # cells listed as closest to passing when none passes
+FIGURES = {"p50": "p50_ms", "p99": "p99_ms", "size": "size_mib", "throughput": "throughput_sps"}
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """An ok cell with its verdict; `baseline`: the model's baseline cell (its paired speed-up is 1)."""
+
+    record: CellRecord
+    verdict: Verdict
+    baseline: bool = False
+
+
+@dataclass(frozen=True)
+class Recommendation:
+    """For one model, target (and host): the best passing cell by `objective` and the runner-up; `ratio`: how
+    many times better the best is on the objective, with its 95 % interval where the figures have one;
+    `distinguishable`: that interval excludes 1 (None: no interval); `closest`: when none passes."""
+
+    model: str
+    target: str
+    host: str | None
+    objective: str
+    passing: int
+    judged: int
+    best: CellRecord | None = None
+    runner_up: CellRecord | None = None
+    ratio: float | None = None
+    ratio_ci: tuple[float, float] | None = None
+    distinguishable: bool | None = None
+    closest: tuple[Candidate, ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        return {"model": self.model, "target": self.target, "host": self.host, "objective": self.objective,
+                "cell": _key(self.best), "runner_up": _key(self.runner_up),
+                "distinguishable": self.distinguishable,
+                "ratio": self.ratio, "ratio_ci": list(self.ratio_ci) if self.ratio_ci else None,
+                "passing": self.passing, "judged": self.judged,
+                "closest": [{"cell": c.record.cell.key, **c.verdict.to_json()} for c in self.closest]}
+
+
+def recommend(model: str, candidates: Sequence[Candidate], failed: Iterable[CellRecord], objective: str
+              ) -> tuple[Recommendation, ...]:
+    """One recommendation per target and host the model's cells ran on (ok or failed), in that order."""
+    groups: dict[tuple[str, str | None], list[Candidate]] = {}
+    for record in failed:
+        groups.setdefault((record.cell.target, record.host), [])
+    for candidate in candidates:
+        groups.setdefault((candidate.record.cell.target, candidate.record.host), []).append(candidate)
+    return tuple(_group(model, target, host, groups[(target, host)], objective)
+                 for target, host in sorted(groups, key=lambda g: (g[0], g[1] or "")))
+
+
+def _group(model: str, target: str, host: str | None, found: list[Candidate], objective: str
+           ) -> Recommendation:
+    passing = [c for c in found if c.verdict.status == PASS]
+    made = Recommendation(model, target, host, objective, len(passing), len(found))
+    if not passing:
+        return replace(made, closest=closest(found))
+    ranked = rank(passing, objective)
+    if len(ranked) == 1:
+        return replace(made, best=ranked[0].record)
+    ratio, half = compare(ranked[0], ranked[1], objective, _speedups(passing))
+    known = ratio is not None and half is not None
+    return replace(made, best=ranked[0].record, runner_up=ranked[1].record, ratio=ratio,
+                   ratio_ci=(ratio * math.exp(-half), ratio * math.exp(half)) if known else None,
+                   distinguishable=abs(math.log(ratio)) > half if known else None)
+
+
+def rank(candidates: Sequence[Candidate], objective: str) -> list[Candidate]:
+    """Best first by the objective: p50 by the paired speed-up where every cell has one, else by p50; p99 and
+    size lowest first; throughput highest first; ties by cell key."""
+    score = _score(objective, _speedups(candidates))
+    return sorted(candidates, key=lambda c: (score(c), c.record.cell.key))
+
+
+def compare(best: Candidate, other: Candidate, objective: str, paired: bool
+            ) -> tuple[float | None, float | None]:
+    """How many times better `best` is than `other` on the objective, and the half-width of that ratio's
+    95 % interval on the log scale (the two intervals' half-widths combined in quadrature; 0 for sizes; None
+    where a figure has no interval)."""
+    if objective == "p50" and paired:
+        (a, ha), (b, hb) = _speedup(best), _speedup(other)
+        return a / b, math.hypot(ha, hb)
+    (a, ia), (b, ib) = (figure(FIGURES[objective], c.record.metrics) for c in (best, other))
+    if not a or not b or a < 0 or b < 0:
+        return None, None
+    ratio = a / b if objective == "throughput" else b / a
+    if objective == "size":
+        return ratio, 0.0
+    halves = [_log_half(value, interval) for value, interval in ((a, ia), (b, ib))]
+    return ratio, None if None in halves else math.hypot(*halves)
+
+
+def closest(found: Sequence[Candidate]) -> tuple[Candidate, ...]:
+    """The cells closest to passing: uncertain first, then fewest requirements missed, then the smallest
+    miss."""
+    def distance(c: Candidate) -> tuple[int, int, float, str]:
+        misses = [check.miss for check in c.verdict.failed]
+        return (c.verdict.status != UNCERTAIN, len(misses), sum(misses), c.record.cell.key)
+    return tuple(sorted((c for c in found if c.verdict.status in (FAIL, UNCERTAIN)), key=distance)[:CLOSEST])
+
+
+def _score(objective: str, paired: bool) -> Callable[[Candidate], float]:
+    def read(key: str, c: Candidate) -> float:
+        value = figure(key, c.record.metrics)[0]
+        return math.inf if value is None else value
+    if objective == "p50" and paired:
+        return lambda c: -_speedup(c)[0]
+    if objective == "throughput":
+        return lambda c: -read("throughput_sps", c)
+    return lambda c: read(FIGURES[objective], c)
+
+
+def _speedups(candidates: Iterable[Candidate]) -> bool:
+    """Whether every cell has a paired speed-up (the baseline's is 1)."""
+    return all(c.baseline or _speedup(c)[0] > 0 for c in candidates)
+
+
+def _speedup(c: Candidate) -> tuple[float, float]:
+    """The cell's paired speed-up and its interval's half-width on the log scale; the baseline's is (1, 0)."""
+    if c.baseline:
+        return 1.0, 0.0
+    found = c.record.metrics.speedup
+    value = found.value if found is not None and isinstance(found.value, int | float) else 0.0
+    if value <= 0:
+        return 0.0, 0.0
+    interval = found.ci if found is not None and found.ci is not None and len(found.ci) == 2 else None
+    half = _log_half(value, interval)
+    if half is None:
+        half = math.log1p(found.ci_half) if isinstance(found.ci_half, int | float) else 0.0
+    return float(value), half
+
+
+def _log_half(value: float | None, interval: Sequence[float] | None) -> float | None:
+    """The larger side of `interval` around `value` on the log scale, or None."""
+    if value is None or value <= 0 or interval is None or min(interval) <= 0:
+        return None
+    return max(math.log(interval[1] / value), math.log(value / interval[0]), 0.0)
+
+
+def _key(record: CellRecord | None) -> str | None:
+    return None if record is None else record.cell.key
