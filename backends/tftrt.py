@@ -36,6 +36,7 @@ class TFTRTBackend(Backend):
     """Converts a Keras model with TF-TRT's TrtGraphConverterV2 and runs its serving signature on the GPU."""
 
     name = "tftrt"
+    slow_start = "builds TensorRT engines for a minute or more"
     description = "TF-TRT (TensorFlow with TensorRT engines): FP32, FP16, INT8 with entropy calibration"
     supports = (Support(("tensorflow",), ("none",), ("fp32", "fp16"), ("tensorrt",)),
                 Support(("tensorflow",), ("ptq_static",), ("int8",), ("tensorrt",)))

@@ -53,6 +53,7 @@ class TorchCompileBackend(InductorBackend):
     """The source model, compiled by torch.compile at load for the cell's batch sizes, before any timing."""
 
     name = "torch_compile"
+    slow_start = "compiles the model with Inductor for a minute or more when a session loads"
     description = "torch.compile (TorchDynamo + Inductor), compiled at load for the cell's batch sizes"
     python_headers = True
     options = {
@@ -98,6 +99,7 @@ class AotInductorBackend(InductorBackend):
     """The model exported with a dynamic batch axis and compiled ahead of time into an AOTInductor package."""
 
     name = "aot_inductor"
+    slow_start = "compiles the model ahead of time with Inductor for half a minute or more"
     description = "AOTInductor: torch.export + Inductor compiled ahead of time into a .pt2 package"
     options = {
         "mode": {"enum": list(AOT_MODES), "default": "default",

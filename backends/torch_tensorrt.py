@@ -36,6 +36,7 @@ class TorchTensorRTBackend(Backend):
     """Compiles the model with torch_tensorrt.dynamo.compile on the GPU and saves it, engines included."""
 
     name = "torch_tensorrt"
+    slow_start = "builds a TensorRT engine for a minute or more"
     description = "Torch-TensorRT: TensorRT engines compiled ahead of time (dynamo frontend); int8 by NVIDIA ModelOpt"
     supports = (Support(("pytorch",), ("none",), ("fp32", "fp16"), ("tensorrt",)),
                 Support(("pytorch",), ("ptq_static",), ("int8",), ("tensorrt",)))

@@ -96,6 +96,8 @@ class Backend(ABC):
     # built-in ones are declared simply by naming them in `supports`.
     options: ClassVar[dict[str, Any]] = {}
     revision: ClassVar[int] = 1  # raise it when the conversion changes: cached artifacts are then redone
+    # why a first result takes minutes (it compiles): the automatic matrix of a model file leaves it out
+    slow_start: ClassVar[str] = ""
     devices: ClassVar[dict[str, str]] = {}  # target -> the device it runs on (one of DEVICES); unnamed: cpu
 
     def device(self, target: str) -> str:

@@ -95,20 +95,23 @@ def _found(request: Request, ws: Workspace) -> Found:
     from bench_matrix.matrix.automatic import candidates, found
     from bench_matrix.registry import BackendLoadError, available, backend_class
 
-    supports = {}
+    supports, slow = {}, {}
     for name in available():
         try:
-            supports[name] = backend_class(name).supports
+            found_class = backend_class(name)
         except BackendLoadError:
             continue  # `bench-matrix backends` says why
-    combos = candidates(request.framework, supports)
+        supports[name] = found_class.supports
+        if found_class.slow_start:
+            slow[name] = found_class.slow_start
+    combos = candidates(request.framework, supports, slow)
     file = (request.framework, request.format, str(request.path))
     keys = tuple((b, request.framework, s, p, t, request.format, "{}", "") for b, s, p, t in combos)
     ws.root.mkdir(parents=True, exist_ok=True)
     probed = probe(ProbeJob(ws, tuple(sorted({c[0] for c in combos})), keys, (), (file,)))
     judged = {c: (v.invalid or v.skip) for c, v in zip(combos, (probed.verdicts[k] for k in keys))}
     batches = probed.batches.get(str(request.path)) or {}
-    return found(request.framework, supports, judged, probed.inputs.get(str(request.path)),
+    return found(request.framework, supports, slow, judged, probed.inputs.get(str(request.path)),
                  min(batches.values(), default=None))
 
 

@@ -14,8 +14,6 @@ from bench_matrix.matrix.spec import DEFAULT_LAYOUT, MODEL_SUFFIXES, file_kind
 from bench_matrix.tensors import DTYPES, TensorSpec
 
 CONVERSIONS = ("none", "ptq_dynamic", "ptq_static")  # the strategies that need no training
-# Backends that compile for minutes before the first result: left out, named in a comment to add them.
-SLOW_BACKENDS = ("torch_compile", "aot_inductor", "torch_tensorrt", "tftrt")
 SAMPLES = 256  # synthetic samples, split so that static quantisation calibrates on 100 (its default)
 SPLIT = "{train: 0.05, calibration: 0.4, test: 0.55}"
 EXPECTED = (f"a model file ({', '.join(sorted(MODEL_SUFFIXES))}) or a Keras SavedModel folder (holding "
@@ -76,23 +74,25 @@ def parse_input(text: str) -> TensorSpec:
     return TensorSpec(parts[0].strip(), tuple(None if d == "?" else int(d) for d in dims), dtype)
 
 
-def candidates(framework: str, supports: Mapping[str, Iterable[Any]]) -> list[Combination]:
-    """Every conversion combination the backends' `Support`s declare for `framework` (slow ones aside)."""
-    return sorted({(name, st, p, t) for name, declared in supports.items() if name not in SLOW_BACKENDS
+def candidates(framework: str, supports: Mapping[str, Iterable[Any]], slow: Mapping[str, str]
+               ) -> list[Combination]:
+    """Every conversion combination the backends' `Support`s declare for `framework`, but those of backends
+    whose first result takes minutes (`slow`: their `slow_start`)."""
+    return sorted({(name, st, p, t) for name, declared in supports.items() if name not in slow
                    for s in declared if framework in s.frameworks
                    for st in s.strategies if st in CONVERSIONS for p in s.precisions for t in s.targets})
 
 
-def found(framework: str, supports: Mapping[str, Iterable[Any]], judged: Mapping[Combination, str | None],
-          inputs: tuple[TensorSpec, ...] | None, batch: int | None) -> Found:
+def found(framework: str, supports: Mapping[str, Iterable[Any]], slow: Mapping[str, str],
+          judged: Mapping[Combination, str | None], inputs: tuple[TensorSpec, ...] | None,
+          batch: int | None) -> Found:
     """What runs here (`judged`: why each candidate cannot, None when it runs), and which backends taking
     `framework` are left out, with why (slow, or their first reason)."""
     runnable = tuple(c for c, why in judged.items() if why is None)
     reasons = {c[0]: why for c, why in reversed(judged.items()) if why}
     taking = sorted(n for n, declared in supports.items()
                     if any(framework in s.frameworks for s in declared))
-    out = {name: ("compiles for minutes before its first result" if name in SLOW_BACKENDS
-                  else reasons.get(name, "implements none of " + ", ".join(CONVERSIONS)))
+    out = {name: slow.get(name) or reasons.get(name, "implements none of " + ", ".join(CONVERSIONS))
            for name in taking if name not in {c[0] for c in runnable}}
     return Found(runnable, out, inputs, batch)
 
