@@ -74,13 +74,16 @@ def no_precompiled_headers() -> dict[str, bool]:
 
 
 @functools.cache
-def private_cache() -> str:
-    """Point Inductor's and Triton's caches at a fresh directory of this process, removed when it exits:
-    every load compiles cold, whatever earlier runs left in the user's cache, and leaves nothing behind."""
+def private_cache(warm: Path | None = None) -> str:
+    """Point Inductor's and Triton's caches at a fresh directory of this process, removed when it exits
+    (holding a copy of `warm`, a cache an artifact carries): whatever the user's cache holds is never used,
+    and nothing is left behind."""
     import torch._inductor.config as inductor_config
 
     directory = tempfile.mkdtemp(prefix="bench-matrix-inductor-")
     atexit.register(shutil.rmtree, directory, ignore_errors=True)
+    if warm is not None and warm.is_dir():
+        shutil.copytree(warm, directory, dirs_exist_ok=True)
     os.environ["TORCHINDUCTOR_CACHE_DIR"] = directory
     os.environ["TRITON_CACHE_DIR"] = os.path.join(directory, "triton")
     inductor_config.cpp_cache_precompile_headers = False  # as no_precompiled_headers(), for the whole process
@@ -122,10 +125,19 @@ def compile_now(session: TorchSession, source: SourceModel, batches: Sequence[in
     """Call a torch.compile'd session at every batch size so that TorchDynamo compiles it now; what it
     compiled, and the seconds it took (compile_s)."""
     graphs, breaks = compiled_graphs()
+    cached = cache_use()
     seconds = run_batches(session, source.inputs, batches, dynamic)
     now_graphs, now_breaks = compiled_graphs()
     if now_graphs == graphs:
         raise RuntimeError(f"torch.compile compiled no graph of {source.label} (TorchDynamo ran it "
                            f"eagerly): the cell would measure eager PyTorch")
     return {"compile_s": round(seconds, 3), "compiled_batches": list(batches), "graphs": now_graphs - graphs,
-            "graph_breaks": now_breaks - breaks}
+            "graph_breaks": now_breaks - breaks, **{k: n - cached[k] for k, n in cache_use().items()}}
+
+
+def cache_use() -> dict[str, int]:
+    """How many Inductor graphs the process took from its cache (hits) and compiled (misses) so far."""
+    from torch._dynamo.utils import counters
+
+    found = counters["inductor"]
+    return {"cache_hits": int(found["fxgraph_cache_hit"]), "cache_misses": int(found["fxgraph_cache_miss"])}

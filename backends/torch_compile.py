@@ -21,6 +21,7 @@ MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagrap
 CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
 AOT_MODES = ("default", "max-autotune-no-cudagraphs")  # an AOTInductor package has no CUDA graphs
 PACKAGE = "model.pt2"
+CACHE = "inductor-cache"  # the Inductor cache a torch_compile artifact carries: its compilation, done once
 
 
 class InductorBackend(Backend):
@@ -53,7 +54,8 @@ class TorchCompileBackend(InductorBackend):
     """The source model, compiled by torch.compile at load for the cell's batch sizes, before any timing."""
 
     name = "torch_compile"
-    slow_start = "compiles the model with Inductor for a minute or more when a session loads"
+    slow_start = ("compiles the model with Inductor when converting, about a minute a cell on 2 cores (once: "
+                  "the artifact keeps the compilation, and every load takes it from there)")
     description = "torch.compile (TorchDynamo + Inductor), compiled at load for the cell's batch sizes"
     python_headers = True
     options = {
@@ -67,39 +69,54 @@ class TorchCompileBackend(InductorBackend):
                       "description": "true: fail on a graph break instead of running that part eagerly"},
     }
 
+    revision = 2  # the artifact carries the Inductor cache of its compilation
+
     def convert(self, request: ConvertRequest) -> dict[str, Any]:
-        """The artifact is a copy of the source file, as for the pytorch backend; compiling waits for load."""
+        """A copy of the source file, compiled once here for the cell's batch sizes: the artifact carries that
+        compilation as an Inductor cache, so every load of it compiles from the cache."""
         source = request.source
         self.check(source)
         shutil.copy2(source.path, request.out_dir / source.path.name)
-        return {"source": {**source.to_dict(), "path": source.path.name}, "max_batch": request.max_batch,
-                "options": self.options_of(request)}
+        meta = {"source": {**source.to_dict(), "path": source.path.name}, "max_batch": request.max_batch,
+                "options": self.options_of(request), "cache": CACHE}
+        pin_threads(request.threads)
+        cache = Path(private_cache())
+        facts = _compiled(request.out_dir, meta, request.target, request.precision)[1]
+        shutil.copytree(cache, request.out_dir / CACHE)
+        return {**meta, "convert_compile_s": facts["compile_s"]}
 
     def load(self, artifact_dir: Path, meta: dict[str, Any], target: str, precision: str,
              threads: int) -> Session:
-        """Compile for batch 1 and max_batch with the threads pinned; compile_s is that part of the load."""
-        import torch
-
+        """Compile for batch 1 and max_batch with the threads pinned, from a copy of the artifact's Inductor
+        cache; compile_s is that part of the load, cache_hits and cache_misses say how it went."""
         pin_threads(threads)
-        private_cache()
-        source = SourceModel.from_dict({**meta["source"], "path": str(artifact_dir / meta["source"]["path"])})
-        options = meta["options"]
-        torch._dynamo.reset()  # a second load in one process must compile again, not reuse the first graphs
-        with quiet_torch(captured=True):
-            module = place(source.load(), target, precision)
-            compiled = torch.compile(module, mode=options["mode"], fullgraph=options["fullgraph"],
-                                     dynamic=None if options["dynamic"] else False)
-            facts = compile_now(TorchSession(compiled, target, precision), source,
-                                cell_batches(meta["max_batch"]), options["dynamic"])
-        facts.update(options, cuda_graphs=target != "cpu" and options["mode"] in CUDA_GRAPH_MODES)
+        private_cache(artifact_dir / meta["cache"] if "cache" in meta else None)
+        compiled, facts = _compiled(artifact_dir, meta, target, precision)
         return TorchSession(compiled, target, precision, facts)
+
+
+def _compiled(artifact_dir: Path, meta: dict[str, Any], target: str, precision: str) -> tuple[Any, dict]:
+    """The artifact's source compiled by torch.compile now, at each of the cell's batch sizes, and the facts."""
+    import torch
+
+    source = SourceModel.from_dict({**meta["source"], "path": str(artifact_dir / meta["source"]["path"])})
+    options = meta["options"]
+    torch._dynamo.reset()  # a second load in one process must compile again, not reuse the first graphs
+    with quiet_torch(captured=True):
+        module = place(source.load(), target, precision)
+        compiled = torch.compile(module, mode=options["mode"], fullgraph=options["fullgraph"],
+                                 dynamic=None if options["dynamic"] else False)
+        facts = compile_now(TorchSession(compiled, target, precision), source,
+                            cell_batches(meta["max_batch"]), options["dynamic"])
+    facts.update(options, cuda_graphs=target != "cpu" and options["mode"] in CUDA_GRAPH_MODES)
+    return compiled, facts
 
 
 class AotInductorBackend(InductorBackend):
     """The model exported with a dynamic batch axis and compiled ahead of time into an AOTInductor package."""
 
     name = "aot_inductor"
-    slow_start = "compiles the model ahead of time with Inductor for half a minute or more"
+    slow_start = "compiles the model ahead of time with Inductor when converting, half a minute or more a cell"
     description = "AOTInductor: torch.export + Inductor compiled ahead of time into a .pt2 package"
     options = {
         "mode": {"enum": list(AOT_MODES), "default": "default",

@@ -53,8 +53,19 @@ def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, res
         console.print(_invalid_table(invalid, show_all))
     console.print(f"{counts['run']} will run, {counts['stored']} already stored, {counts['skip']} will be skipped, "
                   f"{counts['invalid']} not valid, {plan.excluded} removed by exclude")
+    for line in _slow(plan, [p for p in cells if p.state == "run"]):
+        console.print(line, highlight=False, markup=False, soft_wrap=True)
     if store:
         store.close()
+
+
+def _slow(plan: Plan, running: list[CellPlan]) -> list[str]:
+    """A line per backend whose cells that will run take minutes to a first result: how many, and why."""
+    counted: dict[str, int] = {}
+    for p in running:
+        counted[p.cell.backend] = counted.get(p.cell.backend, 0) + 1
+    slow = {name: (plan.backends.get(name) or {}).get("slow_start") for name in counted}
+    return [f"{counted[name]} {name} cell(s): {why}" for name, why in sorted(slow.items()) if why]
 
 
 def _planned(p: CellPlan, name: str) -> str:

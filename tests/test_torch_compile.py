@@ -20,7 +20,7 @@ import pytest
 TESTS = Path(__file__).resolve().parent
 sys.path.insert(0, str(TESTS))
 
-from conftest import matrix_text  # noqa: E402
+from conftest import cli, matrix_text  # noqa: E402
 from convert_helper import convert_with, request_for  # noqa: E402
 from test_backends import CALIBRATION, X, _atol  # noqa: E402
 
@@ -122,7 +122,8 @@ def test_compiled_outputs_match_eager_at_both_batch_sizes(jit, reference: np.nda
 
 def test_compile_time_is_reported_apart_from_the_timed_calls(jit_loaded) -> None:
     out, meta, session, load_s = jit_loaded
-    assert [p.name for p in out.iterdir()] == ["tiny.pt"]  # the source itself: compiling waits for load
+    # the source itself, and the Inductor cache of its compilation for the cell's batch sizes
+    assert sorted(p.name for p in out.iterdir()) == ["inductor-cache", "tiny.pt"]
     assert meta["options"] == {"mode": "default", "dynamic": False, "fullgraph": False}
     info = session.info()
     assert 0 < info["compile_s"] <= load_s and info["compiled_batches"] == [BATCH, 1]  # part of the load
@@ -130,6 +131,28 @@ def test_compile_time_is_reported_apart_from_the_timed_calls(jit_loaded) -> None
     assert {k: info[k] for k in ("device", "threads", "mode", "dynamic", "cuda_graphs")} == {
         "device": "cpu", "threads": 1, "mode": "default", "dynamic": False, "cuda_graphs": False}
     json.dumps(info)
+
+
+WARM = """
+import json, sys
+from pathlib import Path
+from bench_matrix_backends.torch_compile import TorchCompileBackend
+
+session = TorchCompileBackend().load(Path(sys.argv[2]), json.loads(sys.argv[1]), "cpu", "fp32", 1)
+print(json.dumps(session.info()))
+"""
+
+
+def test_a_load_compiles_from_the_cache_the_artifact_carries(jit, tmp_path: Path) -> None:
+    """Compiled once, when converted: a load in a fresh process takes both graphs from the artifact's cache,
+    and leaves nothing behind (the artifact is read, not written)."""
+    out, meta, _ = jit
+    before = sorted(str(p.relative_to(out)) for p in out.rglob("*"))
+    info = json.loads(fresh_process(WARM, json.dumps(meta), str(out), home=tmp_path))
+    assert (info["cache_hits"], info["cache_misses"], info["graphs"]) == (2, 0, 2), info
+    assert info["compile_s"] < meta["convert_compile_s"], (info, meta)
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == before
+    assert written(tmp_path) == []
 
 
 def test_timed_calls_never_recompile(jit) -> None:
@@ -267,3 +290,12 @@ def test_cuda_matches_fp32(backend: Any, precision: str, mode: str, source: Sour
     assert info["device"] == "cuda" and info["tensor_float_32"] is False and info["mode"] == mode
     if backend is JIT:
         assert info["cuda_graphs"] == (mode == "reduce-overhead") and info["compile_s"] > 0
+
+
+def test_plan_says_which_cells_compile_and_why_they_take_long(tiny_project: Path) -> None:
+    (tiny_project / "m.yaml").write_text(matrix_text(["torch_compile", "onnxruntime"], ["none"], ["fp32"],
+                                                     ["cpu"]))
+    plan = cli(tiny_project, "plan", "m.yaml")
+    assert plan.returncode == 0, plan.stdout + plan.stderr
+    assert "1 torch_compile cell(s): compiles the model with Inductor when converting" in plan.stdout
+    assert "onnxruntime cell(s)" not in plan.stdout

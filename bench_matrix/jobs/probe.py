@@ -44,7 +44,7 @@ def _load(names: tuple[str, ...]) -> tuple[dict[str, Backend | None], dict[str, 
             continue
         backends[name] = b
         described[name] = {"error": None, "description": b.description, "versions": b.versions(),
-                           "baseline_for": list(b.baseline_for),
+                           "baseline_for": list(b.baseline_for), "slow_start": b.slow_start,
                            "supports": [{k: list(getattr(s, k)) for k in ("frameworks", "strategies",
                                          "precisions", "targets")} for s in b.supports],
                            "devices": {t: b.device(t) for s in b.supports for t in s.targets}}
