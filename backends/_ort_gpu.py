@@ -361,6 +361,7 @@ class DeviceSession(Session):
         self._dtypes = feed_dtypes(session)
         self._outputs = [value.name for value in session.get_outputs()]
         self._device = device
+        self.quantization: dict[str, Any] | None = None  # how the model was quantised (the backend sets it)
 
     def prepare(self, inputs: dict[str, np.ndarray]) -> "onnxruntime.IOBinding":
         import onnxruntime as ort
@@ -387,4 +388,5 @@ class DeviceSession(Session):
     def info(self) -> dict[str, Any]:
         return {"providers": self._session.get_providers(),
                 "threads": self._session.get_session_options().intra_op_num_threads,
-                "io_binding": f"{self._device}:0", **cuda_options(self._session)}
+                "io_binding": f"{self._device}:0", **cuda_options(self._session),
+                **({"quantization": self.quantization} if self.quantization else {})}

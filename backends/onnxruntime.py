@@ -100,9 +100,10 @@ class OnnxRuntimeBackend(Backend):
              threads: int) -> Session:
         spec = EngineSpec.at_load(artifact_dir, meta) if target == "tensorrt" else None
         session = open_session(artifact_dir / meta["file"], target, precision, threads, spec)
-        if target == "cpu":
-            return OrtSession(session, meta["inputs"])
-        return DeviceSession(session, meta["inputs"], "cuda")
+        found = OrtSession(session, meta["inputs"]) if target == "cpu" else \
+            DeviceSession(session, meta["inputs"], "cuda")
+        found.quantization = meta.get("quantization")  # how it was quantised, for the record (session)
+        return found
 
 
 class OrtSession(Session):
@@ -113,6 +114,7 @@ class OrtSession(Session):
         self._run = session.run
         self._feeds = feeds  # source input name -> graph input name
         self._dtypes = feed_dtypes(session)
+        self.quantization: dict[str, Any] | None = None
 
     def prepare(self, inputs: Inputs) -> dict[str, np.ndarray]:
         """The feed dict: each input contiguous, in the dtype its graph input takes (converted here, untimed)."""
@@ -124,7 +126,8 @@ class OrtSession(Session):
 
     def info(self) -> dict[str, Any]:
         return {"providers": self._session.get_providers(),
-                "threads": self._session.get_session_options().intra_op_num_threads}
+                "threads": self._session.get_session_options().intra_op_num_threads,
+                **({"quantization": self.quantization} if self.quantization else {})}
 
 
 def _pre_process(model: "onnx.ModelProto", tmp: Path) -> tuple[Path, dict[str, str]]:

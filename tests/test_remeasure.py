@@ -51,9 +51,13 @@ def _p50(result: dict) -> dict:
     return cell["metrics"]["p50"]
 
 
-@pytest.fixture
-def two_runs(onnx_project: Path) -> Path:
-    """Run "small" on a narrow network, then "large" with the same cell on a wider (slower) one."""
+@pytest.fixture(scope="module")
+def two_runs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Run "small" on a narrow network, then "large" with the same cell on a wider (slower) one; the tests
+    that take something away run last."""
+    import fuzz_cases
+
+    onnx_project = fuzz_cases.write_project(tmp_path_factory.mktemp("remeasure"))
     (onnx_project / "m.yaml").write_text(onnx_matrix_text(["dense"], ["fp32"]).replace(
         "tiny.onnx", "dense.onnx").split("settings:")[0] + ROUNDS)
     for label, hidden in (("small", 96), ("large", 384)):
@@ -87,6 +91,18 @@ def test_the_same_artifacts_with_a_cpu_bound_process_beside_them_are_unchanged(t
     assert abs(p50["change"]) < 0.1, p50
 
 
+def test_remeasure_without_the_matrix_says_how_to_name_it(two_runs: Path) -> None:
+    (two_runs / "m.yaml").rename(two_runs / "moved.yaml")
+    try:
+        out = cli(two_runs, "compare", "small", "large", "--remeasure")
+        assert out.returncode == 2 and "--matrix FILE" in out.stderr and "Traceback" not in out.stderr, \
+            out.stderr
+        out = cli(two_runs, "compare", "small", "large", "--matrix", "moved.yaml")
+        assert out.returncode == 2 and "use it with --remeasure" in out.stderr, out.stderr
+    finally:
+        (two_runs / "moved.yaml").rename(two_runs / "m.yaml")
+
+
 def test_a_side_whose_artifact_is_gone_is_judged_on_its_stored_samples(two_runs: Path) -> None:
     stored = _json(cli(two_runs, "report", "--run", "small", "--format", "json"), 0)
     artifact = Path(stored["records"][0]["artifact_path"])
@@ -98,11 +114,3 @@ def test_a_side_whose_artifact_is_gone_is_judged_on_its_stored_samples(two_runs:
     assert os.fspath(artifact) in out.stderr, out.stderr
     result = json.loads(out.stdout)
     assert not result["remeasured"] and _p50(result)["name"] == "latency_ms.p50", result
-
-
-def test_remeasure_without_the_matrix_says_how_to_name_it(two_runs: Path) -> None:
-    (two_runs / "m.yaml").rename(two_runs / "moved.yaml")
-    out = cli(two_runs, "compare", "small", "large", "--remeasure")
-    assert out.returncode == 2 and "--matrix FILE" in out.stderr and "Traceback" not in out.stderr, out.stderr
-    out = cli(two_runs, "compare", "small", "large", "--matrix", "moved.yaml")
-    assert out.returncode == 2 and "use it with --remeasure" in out.stderr, out.stderr

@@ -37,18 +37,19 @@ from bench_matrix_backends.torch_compile import AotInductorBackend, TorchCompile
 JIT, AOT = TorchCompileBackend(), AotInductorBackend()
 BATCH = 8  # the throughput batch (max_batch) the artifacts are made for
 NONE = StrategySpec("none", "none", {})
-# Run in a fresh process: convert (argv: source JSON, out dir), or load and predict (argv: meta JSON, out dir,
-# inputs .npy), printing JSON.
+# Run in a fresh process, as the runner does: convert (argv: source JSON, out dir, backend class), or load and
+# predict (argv: meta JSON, out dir, inputs .npy), printing JSON.
 CONVERT = f"""
 import json, sys
 from pathlib import Path
 sys.path.insert(0, {str(TESTS)!r})
 from convert_helper import convert_with
 from bench_matrix.sources import SourceModel
-from bench_matrix_backends.torch_compile import AotInductorBackend
+from bench_matrix_backends import torch_compile
 
 source = SourceModel.from_dict(json.loads(sys.argv[1]))
-print(json.dumps(convert_with([], AotInductorBackend(), source, Path(sys.argv[2]), max_batch={BATCH})))
+backend = getattr(torch_compile, sys.argv[3])()
+print(json.dumps(convert_with([], backend, source, Path(sys.argv[2]), max_batch={BATCH})))
 """
 PREDICT = f"""
 import json, sys
@@ -82,10 +83,12 @@ def written(home: Path) -> list[str]:
 @pytest.fixture(scope="module")
 def jit_loaded(source: SourceModel,
                tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, Any, float]:
-    """The tiny model converted and loaded by torch_compile for batches 1 and 8, one thread, and the seconds
-    the load took."""
+    """The tiny model converted by torch_compile in a fresh process (the compilation its artifact keeps is
+    then a fresh process's, as in a run) and loaded here for batches 1 and 8, one thread, and the seconds the
+    load took."""
     out = tmp_path_factory.mktemp("jit")
-    meta = convert_with(CALIBRATION, JIT, source, out, max_batch=BATCH)
+    meta = json.loads(fresh_process(CONVERT, json.dumps(source.to_dict()), str(out), "TorchCompileBackend",
+                                    home=tmp_path_factory.mktemp("jit-home")))
     begin = time.perf_counter()
     session = JIT.load(out, meta, "cpu", "fp32", 1)
     return out, meta, session, time.perf_counter() - begin
@@ -101,8 +104,7 @@ def aot(source: SourceModel, tmp_path_factory: pytest.TempPathFactory) -> tuple[
     """The AOTInductor package of the tiny model for batches 1..8, converted in a fresh process whose
     temporary directory and home are watched: (that process's home, the artifact folder, the metadata)."""
     home, out = tmp_path_factory.mktemp("aot-home"), tmp_path_factory.mktemp("aot")
-    meta = fresh_process(CONVERT, json.dumps(source.to_dict()), str(out),
-                         home=home)
+    meta = fresh_process(CONVERT, json.dumps(source.to_dict()), str(out), "AotInductorBackend", home=home)
     return home, out, json.loads(meta)
 
 
