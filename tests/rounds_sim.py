@@ -55,8 +55,10 @@ class FakeSession:
         return Window(kind, durations_ms=durations, disturbed=disturbed)
 
 
-def rounds_on(machine: Machine, seed: int = 1, **settings) -> Rounds:
-    return Rounds(RoundsSettings(**settings), rng=random.Random(seed), clock=machine.clock)
+def rounds_on(machine: Machine, seed: int = 1, references: dict[str, str] | None = None,
+              **settings) -> Rounds:
+    return Rounds(RoundsSettings(**settings), rng=random.Random(seed), clock=machine.clock,
+                  references=references)
 
 
 def cells(machine: Machine, names: list[str], **session) -> dict[str, FakeSession]:

@@ -30,10 +30,12 @@ def test_every_round_visits_every_cell_once_in_a_fresh_random_order():
     assert len(set(rounds.orders)) >= 5  # fresh orders (10 draws out of 120: ~10 distinct), not one reused
     visited = [cell for cell, kind, _ in machine.log if kind == LATENCY]
     assert [tuple(visited[i:i + 5]) for i in range(0, 50, 5)] == rounds.orders  # the order recorded is run
-    assert [kind for _, kind, _ in machine.log] == [LATENCY, "throughput"] * 50  # a cell's kinds back to back
+    # a cell's kinds back to back; other kinds than latency until min_rounds (5) are clean
+    assert [kind for _, kind, _ in machine.log] == [LATENCY, "throughput"] * 25 + [LATENCY] * 25
     for name in names:
-        assert set(timed[name].kept[LATENCY]) == set(timed[name].kept["throughput"]) == set(range(10))
-        assert sessions[name].windows == 20
+        assert set(timed[name].kept[LATENCY]) == set(range(10)) and set(timed[name].kept["throughput"]) == {
+            0, 1, 2, 3, 4}
+        assert sessions[name].windows == 15
 
 
 def test_the_rounds_order_comes_from_the_rng_given():
@@ -62,6 +64,31 @@ def test_quiet_cells_without_a_baseline_also_wait_for_min_rounds():
     rounds = rounds_on(machine, min_rounds=4, target=0.02)
     assert rounds.run(cells(machine, ["x", "y"]), {"x": Timed(), "y": Timed()}, None, budget_s=1e9) == "width"
     assert len(rounds.orders) == 4
+
+
+def test_a_narrow_cell_leaves_the_rounds_and_the_rest_go_on_with_the_baseline():
+    machine = Machine(seed=1)
+    sessions = cells(machine, ["base", "x"], noise=0.001)
+    sessions["y"] = FakeSession(machine, "y", noise=0.5)
+    timed = {name: Timed() for name in sessions}
+    rounds = rounds_on(machine, min_rounds=5, max_rounds=12, target=0.02)
+    assert rounds.run(sessions, timed, "base", budget_s=1e9) == "rounds"
+    assert all(sorted(order) == ["base", "x", "y"] for order in rounds.orders[:5])
+    assert all(sorted(order) == ["base", "y"] for order in rounds.orders[5:]) and len(rounds.orders) == 12
+    assert timed["x"].stop == "width" and round_keys(timed["x"]) == set(range(5))
+    assert timed["y"].stop == "" and round_keys(timed["base"]) == round_keys(timed["y"]) == set(range(12))
+
+
+def test_a_cell_stays_in_the_rounds_while_another_is_paired_against_it():
+    machine = Machine(seed=1)
+    sessions = cells(machine, ["base", "x@base", "y"], noise=0.001)
+    sessions["x@new"] = FakeSession(machine, "x@new", noise=0.5)
+    timed = {name: Timed() for name in sessions}
+    rounds = rounds_on(machine, min_rounds=5, max_rounds=9, target=0.02, references={"x@new": "x@base"})
+    assert rounds.run(sessions, timed, "base", budget_s=1e9) == "rounds"
+    assert all(sorted(order) == ["base", "x@base", "x@new"] for order in rounds.orders[5:])
+    assert timed["y"].stop == "width" and timed["x@base"].stop == ""
+    assert narrow(timed["x@base"], timed["base"], rounds.settings)  # narrow, yet kept for x@new's pairs
 
 
 def test_each_session_times_its_own_kinds():

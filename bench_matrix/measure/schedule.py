@@ -1,7 +1,7 @@
 """The rounds scheduler (docs/metrics.md §5): the harness owns the clock. A model's loaded sessions are timed
 in short windows, round by round, each round visiting every cell once in a fresh random order, until every
-cell's p50 and speed-up intervals are narrow enough or the time budget is spent; as many sessions are alive
-at once as fit the memory budget, the baseline in every group."""
+cell's p50 and speed-up intervals are narrow enough (each cell leaves them once it is) or the time budget is
+spent; as many sessions are alive at once as fit the memory budget, the baseline in every group."""
 
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ class SessionLost(Exception):
 class Session(Protocol):
     """A loaded cell, kept alive between windows (its own process)."""
 
-    kinds: tuple[str, ...]  # the kinds of window it times, each round in this order
+    kinds: tuple[str, ...]  # the kinds of window it times, each round in this order (LATENCY: every round)
     rss_mb: float  # its resident memory once loaded and warmed up
 
     def window(self, kind: str) -> Window:
@@ -47,9 +47,9 @@ class Session(Protocol):
 
 @dataclass(frozen=True)
 class RoundsSettings:
-    """When rounds stop: every interval within ±`target` after `min_rounds`, or `budget_s` spent (or
-    `max_rounds`); a cell whose windows were disturbed more than `disturbed_share` of the time is marked;
-    each window's length (the sessions time it)."""
+    """When rounds stop: every interval within ±`target` after `min_rounds` (windows of other kinds than
+    LATENCY are timed until `min_rounds` are clean), or `budget_s` spent (or `max_rounds`); a cell whose
+    windows were disturbed more than `disturbed_share` of the time is marked; each window's length."""
 
     min_rounds: int = 5
     max_rounds: int = 200
@@ -114,37 +114,53 @@ def narrow(timed: Timed, baseline: Timed | None, settings: RoundsSettings) -> bo
 class Rounds:
     """Runs the rounds of a model's cells; `rng` orders each round, `clock` (seconds) measures the budget,
     `hold` is held around each group's rounds (the machine's timing lock), `on_round` hears each round
-    begin."""
+    begin; `references` pairs a cell's speed-up against another cell than the baseline."""
 
     def __init__(self, settings: RoundsSettings, rng: random.Random | None = None,
                  clock: Callable[[], float] = time.monotonic,
                  hold: Callable[[], AbstractContextManager] = nullcontext,
-                 on_round: Callable[[int], None] = lambda number: None):
+                 on_round: Callable[[int], None] = lambda number: None,
+                 references: Mapping[str, str] | None = None):
         self.settings, self.rng, self.clock = settings, rng or random.Random(), clock
-        self.hold, self.on_round = hold, on_round
+        self.hold, self.on_round, self.references = hold, on_round, dict(references or {})
         self.number = 0  # rounds run so far, over every group (the baseline's rounds are numbered so)
         self.orders: list[tuple[str, ...]] = []
 
     def run(self, sessions: Mapping[str, Session], timed: dict[str, Timed], baseline: str | None,
             budget_s: float) -> str:
-        """Rounds over `sessions` until they are narrow enough or `budget_s` is spent; why they stopped. A
-        lost session's cell fails and leaves the rounds."""
+        """Rounds over `sessions` until every cell has left them narrow enough, or `budget_s` is spent; why
+        they stopped. A lost session's cell fails and leaves the rounds."""
         with self.hold():
             live = dict(sessions)
-            start, count = self.clock(), 0
+            start, count, settled = self.clock(), 0, False
             while live:
                 self._round(live, timed)
                 count += 1
+                settled = self._settle(live, timed, baseline) or settled
                 if not live:
                     break
-                base = timed.get(baseline) if baseline in live else None
-                if all(narrow(timed[key], base, self.settings) for key in live):
-                    return "width"
                 if count >= self.settings.max_rounds:
                     return "rounds"
                 if self.clock() - start >= budget_s and count >= 2:
                     return "budget"
-            return "failed"
+            return "width" if settled else "failed"
+
+    def _settle(self, live: dict[str, Session], timed: dict[str, Timed], baseline: str | None) -> bool:
+        """Cells narrow enough leave the rounds (their stop: width), the budget going to the others; a cell
+        stays while another still in them is paired against it. Whether any left."""
+        def reference(key: str) -> str | None:
+            return self.references.get(key, baseline)
+
+        def against(key: str) -> Timed | None:
+            return timed[reference(key)] if reference(key) in live else None
+
+        leaving = {key for key in live if narrow(timed[key], against(key), self.settings)}
+        while needed := leaving & {reference(key) for key in live if key not in leaving}:
+            leaving -= needed
+        for key in leaving:
+            timed[key].stop = "width"
+            del live[key]
+        return bool(leaving)
 
     def _round(self, live: dict[str, Session], timed: dict[str, Timed]) -> None:
         order = tuple(self.rng.sample(sorted(live), len(live)))
@@ -153,7 +169,8 @@ class Rounds:
         for key in order:
             try:
                 for kind in live[key].kinds:
-                    timed[key].add(self.number, live[key].window(kind))
+                    if kind == LATENCY or len(timed[key].kept.get(kind, {})) < self.settings.min_rounds:
+                        timed[key].add(self.number, live[key].window(kind))
             except SessionLost as lost:
                 timed[key].failed = str(lost)
                 del live[key]
