@@ -55,6 +55,10 @@ class Planned:
         """What `bench-matrix plan` shows for the cell under the scenario's column (rich markup)."""
         raise NotImplementedError
 
+    def timed(self) -> bool:
+        """Whether its figures depend on the wall clock: then it runs under the machine's timing lock."""
+        return False
+
 
 @dataclass(frozen=True)
 class CellPlan:

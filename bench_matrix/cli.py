@@ -11,6 +11,7 @@ from pathlib import Path
 
 from bench_matrix import __version__
 from bench_matrix.cli_auto import add_init, add_model_options
+from bench_matrix.cli_device import add_device_command, add_device_options, ssh_options
 from bench_matrix.cli_history import add_commands
 from bench_matrix.cli_verdict import add_report_options, add_require
 from bench_matrix.errors import MatrixError, UserError
@@ -60,12 +61,14 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--force", action="store_true", help="re-run cells that already have a stored result")
     run.add_argument("--label", help="a name for this run in the store's history, e.g. a git commit "
                                      "(`compare` and `report --run` accept it)")
-    run.add_argument("--executor", choices=("local", "ray"), default="local",
-                     help="where cells run: this machine, or a Ray cluster (docs/running.md; default: local)")
+    run.add_argument("--executor", choices=("local", "ray", "ssh"), default="local",
+                     help="where cells run: this machine, a Ray cluster, or converted here and measured on "
+                          "SSH devices (docs/running.md, docs/devices.md; default: local)")
     run.add_argument("--address", help="the Ray cluster to use (HOST:6379, ray://HOST:10001 or auto; "
                                        "default: $RAY_ADDRESS, else a Ray started on this machine)")
     run.add_argument("--shard", help="I/N: run only shard I of N of the chosen cells (one per machine of a "
                                      "batch scheduler; `merge` their stores)")
+    add_device_options(run)
     add_require(run)
     add_model_options(run)
     _filters(run)
@@ -103,6 +106,7 @@ def _parser() -> argparse.ArgumentParser:
                         help="the built-in schema only (docs/matrix.schema.json), without installed plugins")
     schema.set_defaults(handler=_schema)
     add_commands(sub)
+    add_device_command(sub)
     add_init(sub)
     return parser
 
@@ -198,9 +202,10 @@ def _run(args: argparse.Namespace, console) -> int:
     executor = None
     try:
         remember(store, matrix)
-        connecting = console.status("connecting to the Ray cluster (or starting one here) …")
-        with connecting if args.executor == "ray" else contextlib.nullcontext():
-            executor = open_executor(args.executor, ws, args.address)
+        connecting = {"ray": "connecting to the Ray cluster (or starting one here) …",
+                      "ssh": "logging in to the devices …"}.get(args.executor)
+        with console.status(connecting) if connecting else contextlib.nullcontext():
+            executor = open_executor(args.executor, ws, args.address, ssh_options(args, args.device))
         plan = resolve(matrix, ws, probe)
         counts = Runner(plan, ws, store, executor, console, args.label, shard).run(filters, args.force)
     finally:

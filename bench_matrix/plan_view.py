@@ -122,12 +122,12 @@ def show_backends(console: Console, ws: Workspace) -> None:
             grid.add_row("supports", f"{'/'.join(s['frameworks'])}: {', '.join(s['strategies'])} at "
                                      f"{', '.join(s['precisions'])} on {', '.join(s['targets'])}")
         for target in targets:
-            grid.add_row(target, _target_status(name, target, verdicts))
+            grid.add_row(target, target_status(name, target, verdicts))
         grid.add_row("versions", escape(", ".join(f"{k} {v}" for k, v in info["versions"].items()) or "—"))
         console.print(Padding(grid, (0, 0, 1, 2)))
 
 
-def _target_status(backend: str, target: str, verdicts: dict[VerdictKey, Verdict]) -> str:
+def target_status(backend: str, target: str, verdicts: dict[VerdictKey, Verdict]) -> str:
     """ready / not supported / the skip reasons, with the precisions they concern."""
     mine = {key[3]: v.skip for key, v in verdicts.items() if key[0] == backend and key[4] == target}
     if not mine:

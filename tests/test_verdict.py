@@ -233,5 +233,6 @@ def test_requirements_read_alone_from_a_matrix_file_with_located_problems(tmp_pa
 
 def _allowed(close: str) -> str:
     keys = ("closed_loop, cosine_similarity, mae, max_abs_diff_vs_baseline, max_drop, mse, objective, "
-            "p50_ms, p99_ms, peak_rss_mib, size_mib, snr_db, throughput_sps, top1, top1_agreement, top5")
+            "p50_ms, p99_ms, peak_rss_mib, size_mib, snr_db, stream, throughput_sps, top1, top1_agreement, "
+            "top5")
     return f"{keys}; did you mean '{close}'?"

@@ -20,6 +20,7 @@ from bench_matrix.executors import ray_tasks
 from bench_matrix.executors.base import Ended, Executor, Limits, Phase, Tick, Work
 from bench_matrix.executors.local import PROBE_TIMEOUT_S
 from bench_matrix.executors.ray_tasks import NodeRun, Shipment
+from bench_matrix.executors.shipping import pack
 from bench_matrix.jobs import ConvertJob, Job, ProbeJob, RoundsJob
 from bench_matrix.jobs.results import MeasuredGroup
 from bench_matrix.matrix.expand import judge, training_key, verdict_key
@@ -159,7 +160,7 @@ class RayExecutor(Executor):
         run from this machine, unless a node made it and packed it already."""
         if str(path) not in self._shipped:
             beside = external_data_files(path) if file_kind(path) == ("onnx", "onnx") else []
-            key, data = ray_tasks.pack(path, beside)
+            key, data = pack(path, beside)
             self._shipped[str(path)] = Shipment(key, path.name, self.ray.put(data))
         return self._shipped[str(path)]
 

@@ -4,21 +4,18 @@ local executor, pack what it made for jobs elsewhere (Ray is imported only insid
 from __future__ import annotations
 
 import dataclasses
-import io
 import os
-import shutil
-import tarfile
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from bench_matrix.executors.base import Limits, Work
 from bench_matrix.executors.local import LocalExecutor
+from bench_matrix.executors.shipping import SHIPPED, extract, named_back, pack, relocate, shipped_folder
 from bench_matrix.jobs import Job
 from bench_matrix.measure import env as environment
-from bench_matrix.workspace import Workspace, digest
+from bench_matrix.workspace import Workspace
 
 NODE_WORKSPACE_VARIABLE = "BENCH_MATRIX_NODE_WORKSPACE"
 
@@ -55,20 +52,6 @@ def node_workspace() -> Workspace:
     return Workspace(Path(root) if root else Path.home() / ".cache" / "bench-matrix" / "node")
 
 
-def pack(path: Path, beside: Sequence[Path] = ()) -> tuple[str, bytes]:
-    """A file or folder, with the files `beside` it that it reads (an ONNX model's external data), as tar
-    bytes, and the key of its content (names, sizes, modification times)."""
-    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path, *beside]
-    stats = [(str(f.relative_to(path if path.is_dir() else path.parent)), f.stat().st_size,
-              f.stat().st_mtime_ns) for f in files]
-    buffer = io.BytesIO()
-    with tarfile.open(fileobj=buffer, mode="w") as tar:
-        tar.add(path, arcname=path.name)
-        for extra in beside:
-            tar.add(extra, arcname=str(extra.relative_to(path.parent)))
-    return digest({"path": str(path), "files": stats}), buffer.getvalue()
-
-
 def unpack(shipments: dict[str, Shipment], ws: Workspace) -> dict[str, str]:
     """Each shipment in the node's workspace (fetched from the object store only when missing); the driver's
     path -> the node's path."""
@@ -76,47 +59,12 @@ def unpack(shipments: dict[str, Shipment], ws: Workspace) -> dict[str, str]:
 
     moved = {}
     for driver_path, shipment in shipments.items():
-        final = ws.root / "shipped" / shipment.key
+        final = shipped_folder(ws, shipment.key)
         if not final.is_dir():
-            tmp = final.with_name(f"{final.name}.tmp{os.getpid()}")
-            shutil.rmtree(tmp, ignore_errors=True)
-            tmp.mkdir(parents=True)
             data = ray.get(shipment.ref)
-            data = data if shipment.member is None else data[shipment.member]
-            with tarfile.open(fileobj=io.BytesIO(data), mode="r") as tar:
-                tar.extractall(tmp, filter="data")
-            try:
-                tmp.rename(final)
-            except OSError:  # another task on this node unpacked it first
-                shutil.rmtree(tmp, ignore_errors=True)
+            extract(data if shipment.member is None else data[shipment.member], final)
         moved[driver_path] = str(final / shipment.name)
     return moved
-
-
-def relocate(value: Any, moved: dict[str, str], ws: Workspace) -> Any:
-    """`value` (a job, or anything in it) with the driver's paths replaced by the node's and every workspace
-    by the node's."""
-    if isinstance(value, Workspace):
-        return ws
-    if isinstance(value, Path):
-        return Path(_moved(str(value), moved))
-    if isinstance(value, str):
-        return _moved(value, moved)
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return dataclasses.replace(value, **{f.name: relocate(getattr(value, f.name), moved, ws)
-                                             for f in dataclasses.fields(value) if f.init})
-    if isinstance(value, (tuple, list)):
-        return type(value)(relocate(v, moved, ws) for v in value)
-    if isinstance(value, dict):
-        return {k: relocate(v, moved, ws) for k, v in value.items()}
-    return value
-
-
-def _moved(text: str, moved: dict[str, str]) -> str:
-    for old, new in moved.items():
-        if text == old or text.startswith(old + "/"):
-            return new + text[len(old):]
-    return text
 
 
 def run_on_node(job: Job, limits: Limits, shipments: dict[str, Shipment],
@@ -134,7 +82,7 @@ def run_on_node(job: Job, limits: Limits, shipments: dict[str, Shipment],
     made = {str(p): pack(p) for p in (ended.result.files() if ended.ok else ()) if not _shipped(p, ws)}
     run = NodeRun(ray.get_runtime_context().get_node_id(), environment.host_name(),
                   result=relocate(ended.result, back, ws) if ended.ok else None,
-                  error=_named_back(ended.error, back), user_error=ended.user_error, env=ended.env,
+                  error=named_back(ended.error, back), user_error=ended.user_error, env=ended.env,
                   made={path: (key, Path(path).name) for path, (key, _) in made.items()},
                   timing={"scheduled_s": begin - submitted, "ship_s": unpacked - begin,
                           "job_s": time.time() - unpacked, "ended": time.time()})
@@ -143,11 +91,4 @@ def run_on_node(job: Job, limits: Limits, shipments: dict[str, Shipment],
 
 def _shipped(path: Path, ws: Workspace) -> bool:
     """Whether the path is a copy of something shipped here (its origin is known; it needs no new packing)."""
-    return path.is_relative_to(ws.root / "shipped")
-
-
-def _named_back(error: str | None, back: dict[str, str]) -> str | None:
-    """An error message naming the driver's paths, not the node's copies of them."""
-    for node_path, driver_path in back.items():
-        error = error and error.replace(node_path, driver_path)
-    return error
+    return path.is_relative_to(ws.root / SHIPPED)

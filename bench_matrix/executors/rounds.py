@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import random
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from pathlib import Path
 
 from bench_matrix.executors.sessions import SessionProcess
@@ -33,11 +33,11 @@ def rounds_settings(job: RoundsJob) -> RoundsSettings:
 def measure_in_rounds(job: RoundsJob, workdir: Path, logs: Path, on_phase: Callable[[str], None]
                       ) -> MeasuredGroup:
     """Open, time in rounds and finish the job's cells (sessions' logs under `logs`); each cell's result."""
-    sessions = _Sessions(job, workdir, logs, on_phase)
+    sessions = _Sessions(job, workdir, logs, on_phase, hold=lambda: _slot(job, [], on_phase))
     windows: list[TimingWindow] = []
     settings = rounds_settings(job)
     rounds = Rounds(settings, random.Random(), hold=lambda: _slot(job, windows, on_phase),
-                    on_round=lambda n: on_phase(f"round {n + 1}"))
+                    on_round=lambda n: on_phase(f"round {n + 1}"), references=dict(job.references))
     memory_mb = job.cells[0].settings.memory_share * environment.available_memory_mb()
     try:
         timed = measure_groups(list(sessions.jobs), job.baseline, sessions.open, sessions.close, memory_mb,
@@ -55,11 +55,13 @@ def measure_in_rounds(job: RoundsJob, workdir: Path, logs: Path, on_phase: Calla
 
 
 class _Sessions:
-    """The job's sessions: each opened when the scheduler asks, finished (evaluated, its scenarios run) and
-    closed once its rounds are done."""
+    """The job's sessions: each opened when the scheduler asks, finished (evaluated, its scenarios run: under
+    `hold`, the machine's timing lock, when one of them is timed) and closed once its rounds are done."""
 
-    def __init__(self, job: RoundsJob, workdir: Path, logs: Path, on_phase: Callable[[str], None]):
+    def __init__(self, job: RoundsJob, workdir: Path, logs: Path, on_phase: Callable[[str], None],
+                 hold: Callable[[], AbstractContextManager]):
         self.jobs = {cell.id: cell for cell in job.cells}
+        self.hold = hold
         self.logs = {cell.id: logs / name for cell, name in zip(job.cells, job.logs)}
         self.workdir, self.on_phase = workdir, on_phase
         self.opened: dict[str, SessionProcess] = {}
@@ -73,9 +75,12 @@ class _Sessions:
         return self.opened[key]
 
     def close(self, key: str, session: SessionProcess) -> None:
-        self.on_phase(f"evaluating {self.jobs[key].cell.label}")
+        job = self.jobs[key]
+        self.on_phase(f"evaluating {job.cell.label}")
+        timed = any(planned.timed() for planned in job.scenarios)
         try:
-            self.finished[key] = session.finish()
+            with self.hold() if timed else nullcontext():
+                self.finished[key] = session.finish()
         except SessionLost as lost:
             self.finished[key] = lost
         finally:

@@ -11,6 +11,7 @@ from importlib.metadata import PackageNotFoundError, version
 from bench_matrix import __version__
 from bench_matrix.hardware import nvidia_gpus
 from bench_matrix.measure.affinity import allowed_cpus, cpu_frequency_state
+from bench_matrix.measure.jetson import jetson_state
 
 # Known libraries recorded with every result and in every cell's fingerprint (a backend lists its own in
 # versions())
@@ -76,10 +77,12 @@ def run_versions() -> dict[str, str]:
 
 
 def capture() -> dict[str, object]:
-    """A snapshot recorded with every result."""
-    return {
+    """A snapshot recorded with every result (on a Jetson, with its power mode and clocks)."""
+    facts = {
         "host": host_name(), "os": f"{platform.system()} {platform.release()}", "cpu": cpu_model(),
         "cores": os.cpu_count(), "cores_usable": len(allowed_cpus()), "cpu_frequency": cpu_frequency_state(),
         "memory_gb": memory_gb(), "gpus": list(nvidia_gpus()), "python": sys.version.split()[0],
         "libraries": library_versions(), "bench_matrix": __version__,
     }
+    jetson = jetson_state()
+    return {**facts, "jetson": jetson} if jetson else facts

@@ -8,7 +8,7 @@ from functools import cache
 from bench_matrix.named import resolve
 from bench_matrix.scenarios.base import Scenario
 
-SELECTABLE = ("bench_matrix.scenarios.closed_loop:ClosedLoop",)
+SELECTABLE = ("bench_matrix.scenarios.closed_loop:ClosedLoop", "bench_matrix.scenarios.stream:Stream")
 
 
 @cache

@@ -42,6 +42,10 @@ class ClosedLoopPlan(Planned):
             return f"[yellow]not driven:[/] {escape(self.skip)}"
         return f"{', '.join(c.name for c in self.spec.circuits)} × {', '.join(self.spec.modes)}"
 
+    def timed(self) -> bool:
+        """Real-time laps run on the wall clock."""
+        return not self.skip and "real_time" in self.spec.modes
+
 
 class ClosedLoop(Scenario):
     """Laps in the built-in driving simulator, after the latency scenario, with the same session."""

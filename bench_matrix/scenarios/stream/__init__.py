@@ -1,0 +1,78 @@
+"""The stream scenario: cells selected by the matrix's `stream` section serve frames arriving on a fixed clock
+with their loaded session; the achieved rate, deadline misses, drops and jitter go into the record
+(docs/stream.md)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from bench_matrix.cell import Planned
+from bench_matrix.scenarios.base import Loading, Scenario
+from bench_matrix.scenarios.stream.section import stream
+from bench_matrix.scenarios.stream.spec import REQUIREMENTS, SCHEMA, StreamSpec
+
+if TYPE_CHECKING:
+    from bench_matrix.cell import Cell
+    from bench_matrix.matrix.spec import Matrix
+    from bench_matrix.measurement import Measurement
+    from bench_matrix.report.summary import ModelSummary
+
+
+@dataclass(frozen=True)
+class StreamPlan(Planned):
+    """The stream part of a cell: its rate, duration and policy."""
+
+    name = "stream"
+    function = "bench_matrix.scenarios.stream.run:run_stream"
+    spec: StreamSpec
+
+    def fingerprint(self) -> dict[str, Any]:
+        return {"stream": self.spec.stream_dict()}
+
+    def describe(self) -> str:
+        """Rate × duration, policy."""
+        return f"{self.spec.rate_hz:g} Hz × {self.spec.duration_s:g} s, {self.spec.policy}"
+
+    def timed(self) -> bool:
+        return True
+
+
+class Stream(Scenario):
+    """Frames on a fixed clock served by the cell's session, after the latency scenario."""
+
+    name = "stream"
+    title = "stream"
+    schema = SCHEMA
+    requirements = REQUIREMENTS
+
+    def read(self, data: dict[str, Any], loading: Loading) -> StreamSpec:
+        return stream(data, loading)
+
+    def plan(self, section: StreamSpec, matrix: Matrix, cell: Cell) -> StreamPlan | None:
+        """The cell's stream when the section selects it."""
+        return StreamPlan(section) if section.selects(cell.as_dict()) else None
+
+    def figure(self, key: str, metrics: Measurement) -> float | None:
+        """The stream's stored figure `key`; None when the cell has none (it did not stream, or too few
+        calls completed)."""
+        from bench_matrix.report.summary import number
+
+        found = metrics.others.get("stream")
+        return number(found.get(key)) if isinstance(found, dict) else None
+
+    def markdown(self, model: ModelSummary, table: Any, escape: Any) -> list[str]:
+        return _report().markdown_lines(model, table, escape)
+
+    def html(self, model: ModelSummary) -> list[str]:
+        return _report().html_parts(model)
+
+    def terminal(self, model: ModelSummary, console: Any) -> None:
+        _report().print_terminal(model, console)
+
+
+def _report() -> Any:
+    """The report module, imported when a report is made (it needs the store and the report's helpers)."""
+    from bench_matrix.scenarios.stream import report
+
+    return report

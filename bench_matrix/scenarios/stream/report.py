@@ -1,0 +1,104 @@
+"""The stream section of a report, from stored records only: one row per cell that served the stream, its
+rate, misses, drops, jitter and latency under the stream (docs/stream.md defines every figure)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from bench_matrix.report.columns import DASH, Column, fixed, sig
+from bench_matrix.report.html_parts import esc, table
+from bench_matrix.report.summary import ModelSummary, Row, number
+
+INTRO = ("Each cell's own artifact served frames arriving on a fixed clock (docs/stream.md defines every "
+         "figure): a frame is due by the next frame's arrival; with policy skip the frames that arrive while "
+         "a call runs are dropped, with queue they wait.")
+
+
+def _column(header: str, note: str, key: str, render: Callable[[float | None], str]) -> Column:
+    """A numeric column of the stream's stored figure `key`."""
+    return Column(header, note, lambda row: render(number(_stream(row).get(key))), "stream")
+
+
+def _stream(row: Row) -> dict[str, Any]:
+    return row.record.metrics.others["stream"]
+
+
+def _digits(value: float | None) -> str:
+    return sig(value, 3)
+
+
+def _plain(value: float | None) -> str:
+    return DASH if value is None else f"{value:g}"
+
+
+def _percent(value: float | None) -> str:
+    return DASH if value is None else f"{100 * value:.1f}"
+
+
+COLUMNS: tuple[Column, ...] = (
+    Column("Method", "backend, strategy and precision of the cell.", lambda row: row.record.cell.label, ""),
+    Column("Policy", "skip: frames arriving while a call runs are dropped; queue: they wait.",
+           lambda row: str(_stream(row).get("policy", DASH)), ""),
+    _column("Rate Hz", "the frames' rate asked for.", "rate_hz", _plain),
+    _column("Achieved Hz", "completed calls ÷ the stream's span (its duration, or until the last call ended "
+            "if later).", "achieved_hz", lambda v: fixed(v, 1)),
+    _column("Frames", "frames that arrived.", "frames", _plain),
+    _column("Missed", "calls that ended after their deadline (the next frame's arrival).", "missed", _plain),
+    _column("Missed %", "missed ÷ completed calls.", "miss_share", _percent),
+    _column("Dropped", "frames never served (skip: they arrived while a call ran).", "dropped", _plain),
+    _column("Jitter p50 ms", "median of |interval between consecutive completions − period|.",
+            "jitter_p50_ms", _digits),
+    _column("Jitter p99 ms", "99th percentile of that deviation.", "jitter_p99_ms", _digits),
+    _column("Latency p50 ms", "median service time of a call under the stream.", "latency_p50_ms", _digits),
+    _column("Latency p99 ms", "99th percentile of the service time.", "latency_p99_ms", _digits),
+    _column("E2E p50 ms", "median time from a frame's arrival to its call's end (queue: with the wait).",
+            "e2e_p50_ms", _digits),
+    _column("E2E p99 ms", "99th percentile of that time.", "e2e_p99_ms", _digits),
+)
+TERMINAL_LEFT_OUT = ("Frames", "E2E p50 ms")
+
+
+def streamed(model: ModelSummary) -> list[Row]:
+    """The ok cells' rows that served the stream, in the results table's order."""
+    return [row for row in model.rows if isinstance(row.record.metrics.others.get("stream"), dict)]
+
+
+def markdown_lines(model: ModelSummary, table: Callable[[list[str], list[bool], list[list[str]]], str],
+                   escape: Callable[[str], str]) -> list[str]:
+    """The model page's "Stream" section (empty when no cell served it): the table and its column notes."""
+    found = streamed(model)
+    if not found:
+        return []
+    return ["## Stream", "", escape(INTRO), "",
+            table([escape(c.header) for c in COLUMNS], [c.numeric for c in COLUMNS],
+                  [[escape(c.render(row)) for c in COLUMNS] for row in found]),
+            "", "Columns:", "", *(f"- **{escape(c.header)}**: {escape(c.note)}" for c in COLUMNS), ""]
+
+
+def html_parts(model: ModelSummary) -> list[str]:
+    """The HTML page's section: the stream table (every column)."""
+    found = streamed(model)
+    if not found:
+        return []
+    return ["<h3>Stream</h3>", f"<p>{esc(INTRO)}</p>",
+            table([(c.header, c.note) for c in COLUMNS], [c.numeric for c in COLUMNS],
+                  [[c.render(row) for c in COLUMNS] for row in found])]
+
+
+def print_terminal(model: ModelSummary, console: Any) -> None:
+    """Print the stream table without TERMINAL_LEFT_OUT's columns, if a cell served the stream."""
+    from rich.table import Table
+
+    found = streamed(model)
+    if not found:
+        return
+    shown = [c for c in COLUMNS if c.header not in TERMINAL_LEFT_OUT]
+    rendered = [[c.render(row) for c in shown] for row in found]
+    table = Table(title=f"{model.name}: stream", title_justify="left")
+    for k, column in enumerate(shown):
+        table.add_column(column.header, justify="right" if column.numeric else "left",
+                         min_width=max(len(cells[k]) for cells in rendered))
+    for cells in rendered:
+        table.add_row(*cells)
+    console.print(table)
