@@ -38,7 +38,7 @@ class SessionLost(Exception):
 class Session(Protocol):
     """A loaded cell, kept alive between windows (its own process)."""
 
-    kinds: tuple[str, ...]  # the kinds of window it times, each round in this order (LATENCY: every round)
+    kinds: tuple[str, ...]  # the kinds of window it times, each round in this order
     rss_mb: float  # its resident memory once loaded and warmed up
 
     def window(self, kind: str) -> Window:
@@ -47,9 +47,9 @@ class Session(Protocol):
 
 @dataclass(frozen=True)
 class RoundsSettings:
-    """When rounds stop: every interval within ±`target` after `min_rounds` (windows of other kinds than
-    LATENCY are timed until `min_rounds` are clean), or `budget_s` spent (or `max_rounds`); a cell whose
-    windows were disturbed more than `disturbed_share` of the time is marked; each window's length."""
+    """When rounds stop: every interval within ±`target` after `min_rounds`, or `budget_s` spent (or
+    `max_rounds`); a cell whose windows were disturbed more than `disturbed_share` of the time is marked;
+    each window's length (the sessions time it)."""
 
     min_rounds: int = 5
     max_rounds: int = 200
@@ -169,8 +169,7 @@ class Rounds:
         for key in order:
             try:
                 for kind in live[key].kinds:
-                    if kind == LATENCY or len(timed[key].kept.get(kind, {})) < self.settings.min_rounds:
-                        timed[key].add(self.number, live[key].window(kind))
+                    timed[key].add(self.number, live[key].window(kind))
             except SessionLost as lost:
                 timed[key].failed = str(lost)
                 del live[key]
