@@ -131,6 +131,12 @@ def _publish(building: Path, out: Path) -> None:
         shutil.rmtree(building, ignore_errors=True)
 
 
+def measured(name: str) -> bool:
+    """Whether a file of a prepared dataset's folder is read when measuring: its info and the test split's
+    (what travels to a device), not the training or calibration splits."""
+    return not name.startswith(tuple(f"{split}__" for split in SPLITS if split != "test"))
+
+
 def split_file(split: str, name: str) -> str:
     """The cache file of one input (or the labels, `y`) of a split; odd characters of a name %-escaped."""
     safe = "".join(c if c.isascii() and (c.isalnum() or c in "_.-") else f"%{ord(c):02x}" for c in name)

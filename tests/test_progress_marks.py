@@ -34,8 +34,7 @@ def test_a_quiet_or_older_cell_has_no_mark():
 
 def test_a_waiting_phase_shows_its_holder_verbatim():
     out = io.StringIO()
-    console = Console(file=out, force_terminal=True, width=300)
-    with RunProgress(console, 1) as progress:
+    with _progress(out, terminal=True) as progress:
         progress.step("tiny · onnxruntime none fp32")
         progress.phase("waiting for the timing phase of pid 12 of user a ([bold]x · tiny, since 17:50:02)")
     assert "[bold]x · tiny, since 17:50:02)" in out.getvalue()
@@ -50,8 +49,7 @@ def test_a_cell_calibrated_on_fewer_samples_than_asked_says_so():
 
 def test_outside_a_terminal_each_step_and_phase_is_one_timed_line_and_rounds_after_the_first_are_not():
     out = io.StringIO()
-    console = Console(file=out, force_terminal=False, width=300)
-    with RunProgress(console, 1) as progress:
+    with _progress(out, terminal=False) as progress:
         progress.step("preparing model tiny")
         progress.phase("train · epoch 1/2 · loss 0.5 · about 3 s left")
         progress.step("tiny · measuring 2 cells in rounds")
@@ -66,6 +64,11 @@ def test_outside_a_terminal_each_step_and_phase_is_one_timed_line_and_rounds_aft
 
 def test_in_a_terminal_the_bar_alone_shows_the_steps():
     out = io.StringIO()
-    with RunProgress(Console(file=out, force_terminal=True, width=300), 1) as progress:
+    with _progress(out, terminal=True) as progress:
         progress.step("preparing model tiny")
     assert not re.search(r"\[ +\d+\.\d s\] preparing", out.getvalue())
+
+
+def _progress(out: io.StringIO, terminal: bool) -> RunProgress:
+    """A run's progress of one cell, printed to `out` as in a terminal or not."""
+    return RunProgress(Console(file=out, force_terminal=terminal, width=300), 1)

@@ -83,6 +83,8 @@ def test_cells_are_measured_on_the_device_and_shipped_once(onnx_project, server)
     assert facts["device"] == server.device and facts["shipped_files"] > 0 and facts["attempt"] == 1
     shipped = sorted((device_ws / "shipped").iterdir())
     assert shipped and not list((onnx_project / "ws").glob("shipped"))  # the device holds them, not this one
+    names = {p.name for p in (device_ws / "shipped").rglob("*.npy")}
+    assert "test__y.npy" in names and not {n for n in names if n.startswith(("train__", "calibration__"))}
 
     _ok(cli(onnx_project, "run", "m.yaml", "--results", "second.sqlite", *_ssh(server, python, device_ws)))
     second = _records(onnx_project / "second.sqlite")

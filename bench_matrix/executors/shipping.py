@@ -9,7 +9,7 @@ import io
 import os
 import shutil
 import tarfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -23,12 +23,18 @@ def shipped_folder(ws: Workspace, key: str) -> Path:
     return ws.root / SHIPPED / key
 
 
-def pack(path: Path, beside: Sequence[Path] = ()) -> tuple[str, bytes]:
-    """A file or folder, with the files `beside` it that it reads (an ONNX model's external data), as tar
-    bytes (no times or owners: the same content packs to the same bytes), and their SHA-256."""
+def pack(path: Path, beside: Sequence[Path] = (), keep: Callable[[str], bool] = lambda name: True
+         ) -> tuple[str, bytes]:
+    """A file or folder (of its own files, those whose name it would `keep`), with the files `beside` it that
+    it reads (an ONNX model's external data), as tar bytes (no times or owners: the same content packs to
+    the same bytes), and their SHA-256."""
+    def bare(info: tarfile.TarInfo) -> tarfile.TarInfo | None:
+        inside = info.name.split("/")
+        return _bare(info) if len(inside) != 2 or keep(inside[1]) else None
+
     buffer = io.BytesIO()
     with tarfile.open(fileobj=buffer, mode="w", format=tarfile.GNU_FORMAT) as tar:
-        tar.add(path, arcname=path.name, filter=_bare)
+        tar.add(path, arcname=path.name, filter=bare)
         for extra in beside:
             tar.add(extra, arcname=str(extra.relative_to(path.parent)), filter=_bare)
     data = buffer.getvalue()

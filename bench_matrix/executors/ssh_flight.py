@@ -13,6 +13,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from bench_matrix import data
 from bench_matrix.executors.base import Ended, Phase, Work
 from bench_matrix.executors.codec import from_json
 from bench_matrix.executors.shipping import pack
@@ -69,24 +70,31 @@ class Flight:
         except RuntimeError as exc:
             self.failure = str(exc)
             return
-        self.facts["ship_s"] = round(time.time() - begin, 3)
-        self.begin, self.proc = time.time(), self.link.start(self.out)
+        if self.facts["shipped_files"]:
+            self.on_phase(f"{self.name}: shipping {self.facts['shipped_files']} files "
+                          f"({self.facts['shipped_bytes'] / 2**20:.1f} MiB)")
+        self.proc = self.link.start(self.out)
         try:
             pickle.dump(request, self.proc.stdin)
             self.proc.stdin.flush()  # kept open: closing it stops the job on the device
         except BrokenPipeError:
             pass  # ssh ended: its stderr says why
+        self.begin = time.time()
+        self.facts["ship_s"] = round(self.begin - begin, 3)
 
     def _request(self) -> dict[str, Any]:
         """The job, and each file it needs: its content key and name, and the content the device lacks."""
-        packed = {str(p): pack(p, _beside(p)) for p in shipped_paths(self.work.job)}
+        job = self.work.job
+        datasets = {c.data.directory for c in job.cells} if isinstance(job, RoundsJob) else set()
+        packed = {str(p): pack(p, _beside(p), data.measured if p in datasets else lambda name: True)
+                  for p in shipped_paths(job)}
         keys = sorted({key for key, _ in packed.values()})
         lacking = set(self.link.call("missing", *keys)) if keys else set()
         payloads = {key: data for key, data in packed.values() if key in lacking}
         self.facts.update({"attempt": self.attempt, "shipped_files": len(payloads),
                            "shipped_bytes": sum(len(data) for data in payloads.values()),
                            "reused_files": len(keys) - len(payloads)})
-        return {"job": self.work.job, "limits": self.work.limits, "payloads": payloads,
+        return {"job": job, "limits": self.work.limits, "payloads": payloads,
                 "files": {path: (key, Path(path).name) for path, (key, _) in packed.items()}}
 
     @property
