@@ -99,8 +99,8 @@ class Speedup(Figures):
 
 @dataclass(frozen=True)
 class RoundsFacts(Figures):
-    """How the cell's rounds went: kept latency rounds, why they stopped, the target, the width reached and
-    the window length."""
+    """How the cell's rounds went: kept latency rounds, why they stopped, the target, the width reached, the
+    window length, its session processes and how they differed (its own spread, and the model's pooled)."""
 
     OPEN: ClassVar[bool] = True
 
@@ -109,6 +109,9 @@ class RoundsFacts(Figures):
     target: float | None = None
     reached: float | None = None
     window_s: float | None = None
+    processes: int | None = None
+    process_spread: float | None = None
+    model_spread: float | None = None
 
 
 @dataclass(frozen=True)

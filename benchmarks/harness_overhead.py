@@ -1,10 +1,10 @@
 """Harness overhead: bench-matrix's reported p50 for the ONNX Runtime fp32 PilotNet cell vs a bare loop.
 
 Both sides time the same .onnx artifact with the same session options, thread count, inputs and warm-up (the
-harness in its rounds of 0.2-s windows, the bare loop 200 calls and 2 s at least), on the same CPU core (this
-process pins itself; the CLI and its cell processes inherit the affinity). Rounds alternate (harness, bare,
-harness, ...) so machine noise hits both; the median of the per-round ratios and the ratio of the medians are
-printed. Target: within 2 %.
+harness in its rounds of windows and processes as the defaults set them, the bare loop 200 calls and 2 s at
+least), on the same CPU core (this process pins itself; the CLI and its cell processes inherit the
+affinity). Rounds alternate (harness, bare, harness, ...) so machine noise hits both; the median of the
+per-round ratios and the ratio of the medians are printed. Target: within 2 %.
 
     .venv/bin/python benchmarks/harness_overhead.py [--rounds 9] [--cpu N] [--workdir DIR]
 """
@@ -29,8 +29,7 @@ models:
   - {name: pilotnet, framework: pytorch, builtin: pilotnet, training: {epochs: 1}}
 dataset: {builtin: driving, samples: 400, circuits: 4, seed: 0}
 axes: {backend: [onnxruntime], strategy: [none], precision: [fp32], target: [cpu]}
-settings: {threads: 1, warmup_iterations: 20, warmup_s: 0.5, window_s: 0.2, min_rounds: 10, \
-timing_budget_s: 2}
+settings: {threads: 1, warmup_iterations: 20, warmup_s: 0.5, min_rounds: 10, timing_budget_s: 2}
 """
 
 

@@ -61,9 +61,11 @@ def rounds_on(machine: Machine, seed: int = 1, references: dict[str, str] | None
                   references=references)
 
 
-def cells(machine: Machine, names: list[str], **session) -> dict[str, FakeSession]:
-    return {name: FakeSession(machine, name, **session) for name in names}
+def cells(machine: Machine, names: list[str], processes: int = 1, **session) -> dict[str, list[FakeSession]]:
+    """Each name's cell in `processes` fake sessions."""
+    return {name: [FakeSession(machine, name, **session) for _ in range(processes)] for name in names}
 
 
 def round_keys(timed: Timed, kind: str = LATENCY) -> set[int]:
-    return set(timed.kept.get(kind, {})) | set(timed.dropped.get(kind, {}))
+    """The rounds a cell was timed in (any of its processes)."""
+    return {r for r, _ in (*timed.kept.get(kind, {}), *timed.dropped.get(kind, {}))}

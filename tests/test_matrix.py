@@ -45,7 +45,8 @@ def test_valid_matrix_loads_with_defaults(tmp_path):
     assert [m.name for m in matrix.models] == ["a"]
     assert matrix.dataset.labels.offset == (6.5, -7.1)  # the study's label normalisation for the driving set
     settings = matrix.settings
-    assert settings.threads == 1 and settings.window_s == 0.2 and settings.min_rounds == 5
+    assert settings.threads == 1 and settings.window_s == 0.1 and settings.min_rounds == 5
+    assert settings.processes == 2
 
 
 def test_typo_in_key_names_file_line_allowed_and_suggestion(tmp_path):

@@ -32,8 +32,51 @@ def test_every_round_visits_every_cell_once_in_a_fresh_random_order():
     assert [tuple(visited[i:i + 5]) for i in range(0, 50, 5)] == rounds.orders  # the order recorded is run
     assert [kind for _, kind, _ in machine.log] == [LATENCY, "throughput"] * 50  # a cell's kinds back to back
     for name in names:
-        assert set(timed[name].kept[LATENCY]) == set(timed[name].kept["throughput"]) == set(range(10))
-        assert sessions[name].windows == 20
+        slots = {(r, 0) for r in range(10)}
+        assert set(timed[name].kept[LATENCY]) == set(timed[name].kept["throughput"]) == slots
+        assert sessions[name][0].windows == 20
+
+
+def test_every_round_times_every_process_of_every_cell_once():
+    machine = Machine(seed=0)
+    sessions = cells(machine, ["base", "x", "y"], processes=2, noise=0.3)
+    timed = {name: Timed() for name in sessions}
+    rounds = rounds_on(machine, max_rounds=6, target=NEVER_NARROW)
+    assert rounds.run(sessions, timed, "base", budget_s=1e9) == "rounds"
+    assert all(sorted(order) == ["base", "base", "x", "x", "y", "y"] for order in rounds.orders)
+    assert len({order for order in rounds.orders}) >= 3  # the processes of a cell are shuffled with the rest
+    for name in sessions:
+        assert set(timed[name].kept[LATENCY]) == {(r, j) for r in range(6) for j in (0, 1)}
+        assert [session.windows for session in sessions[name]] == [6, 6] and timed[name].rounds() == 6
+
+
+def test_a_lost_process_fails_its_cell_and_its_other_process_is_not_timed_again():
+    machine = Machine(seed=1)
+    sessions = cells(machine, ["base", "x"], processes=2, noise=0.3)
+    sessions["x"][1].crash_at = 2
+    timed = {name: Timed() for name in sessions}
+    rounds = rounds_on(machine, max_rounds=6, target=NEVER_NARROW)
+    rounds.run(sessions, timed, "base", budget_s=1e9)
+    assert timed["x"].failed == "worker exited with signal 9"
+    assert {0, 1} <= round_keys(timed["x"]) <= {0, 1, 2}  # its first process may have had round 2's window
+    assert sessions["x"][0].windows <= 3 and all("x" not in order for order in rounds.orders[3:])
+    assert timed["base"].failed is None and round_keys(timed["base"]) == set(range(6))
+
+
+def test_a_cells_processes_count_together_against_the_memory_budget():
+    machine = Machine(seed=2)
+    opened: list[str] = []
+
+    def open_two(name: str) -> list[FakeSession]:
+        opened.append(name)
+        return [FakeSession(machine, name, noise=0.001, rss_mb=100.0) for _ in range(2)]
+
+    rounds = rounds_on(machine, min_rounds=3, target=0.02)
+    timed = measure_groups(["base", "c1", "c2", "c3"], "base", open_two, lambda name, cell: None,
+                           memory_mb=400, rounds=rounds)
+    assert [sorted(set(order)) for order in rounds.orders[::3]] == [["base", "c1"], ["base", "c2"],
+                                                                     ["base", "c3"]]  # 2 cells of 200 MB each
+    assert all(t.failed is None for t in timed.values())
 
 
 def test_the_rounds_order_comes_from_the_rng_given():
@@ -67,7 +110,7 @@ def test_quiet_cells_without_a_baseline_also_wait_for_min_rounds():
 def test_a_narrow_cell_leaves_the_rounds_and_the_rest_go_on_with_the_baseline():
     machine = Machine(seed=1)
     sessions = cells(machine, ["base", "x"], noise=0.001)
-    sessions["y"] = FakeSession(machine, "y", noise=0.5)
+    sessions["y"] = [FakeSession(machine, "y", noise=0.5)]
     timed = {name: Timed() for name in sessions}
     rounds = rounds_on(machine, min_rounds=5, max_rounds=12, target=0.02)
     assert rounds.run(sessions, timed, "base", budget_s=1e9) == "rounds"
@@ -80,7 +123,7 @@ def test_a_narrow_cell_leaves_the_rounds_and_the_rest_go_on_with_the_baseline():
 def test_a_cell_stays_in_the_rounds_while_another_is_paired_against_it():
     machine = Machine(seed=1)
     sessions = cells(machine, ["base", "x@base", "y"], noise=0.001)
-    sessions["x@new"] = FakeSession(machine, "x@new", noise=0.5)
+    sessions["x@new"] = [FakeSession(machine, "x@new", noise=0.5)]
     timed = {name: Timed() for name in sessions}
     rounds = rounds_on(machine, min_rounds=5, max_rounds=9, target=0.02, references={"x@new": "x@base"})
     assert rounds.run(sessions, timed, "base", budget_s=1e9) == "rounds"
@@ -91,7 +134,8 @@ def test_a_cell_stays_in_the_rounds_while_another_is_paired_against_it():
 
 def test_each_session_times_its_own_kinds():
     machine = Machine(seed=1)
-    sessions = {"x": FakeSession(machine, "x", kinds=(LATENCY, "throughput")), "y": FakeSession(machine, "y")}
+    sessions = {"x": [FakeSession(machine, "x", kinds=(LATENCY, "throughput"))],
+                "y": [FakeSession(machine, "y")]}
     timed = {"x": Timed(), "y": Timed()}
     rounds_on(machine, max_rounds=3, target=NEVER_NARROW).run(sessions, timed, None, budget_s=1e9)
     assert sorted(timed["x"].kept) == [LATENCY, "throughput"] and list(timed["y"].kept) == [LATENCY]
@@ -129,12 +173,12 @@ def test_noisy_cells_stop_on_max_rounds():
 def test_a_lost_session_fails_only_its_cell():
     machine = Machine(seed=5)
     sessions = cells(machine, ["base", "a", "b"], noise=0.3)
-    sessions["lost"] = FakeSession(machine, "lost", noise=0.3, crash_at=3)  # its window in round 3
+    sessions["lost"] = [FakeSession(machine, "lost", noise=0.3, crash_at=3)]  # its window in round 3
     timed = {name: Timed() for name in sessions}
     rounds = rounds_on(machine, max_rounds=8, target=NEVER_NARROW)
     assert rounds.run(sessions, timed, "base", budget_s=1e9) == "rounds"
     assert timed["lost"].failed == "worker exited with signal 9"
-    assert round_keys(timed["lost"]) == {0, 1, 2} and sessions["lost"].windows == 4  # not asked again
+    assert round_keys(timed["lost"]) == {0, 1, 2} and sessions["lost"][0].windows == 4  # not asked again
     assert ["lost" in order for order in rounds.orders] == [True] * 4 + [False] * 4
     for name in ["base", "a", "b"]:
         assert timed[name].failed is None and round_keys(timed[name]) == set(range(8))
@@ -143,7 +187,7 @@ def test_a_lost_session_fails_only_its_cell():
 
 def test_rounds_end_failed_when_every_session_is_lost():
     machine = Machine(seed=6)
-    sessions = {name: FakeSession(machine, name, crash_at=1) for name in ["base", "x"]}
+    sessions = {name: [FakeSession(machine, name, crash_at=1)] for name in ["base", "x"]}
     timed = {name: Timed() for name in sessions}
     assert rounds_on(machine, target=NEVER_NARROW).run(sessions, timed, "base", budget_s=1e9) == "failed"
     assert all(t.failed and round_keys(t) == {0} for t in timed.values())
@@ -164,16 +208,16 @@ class Opener:
         self.peak_mb = 0.0
         self.closed_at: dict[str, int] = {}  # len(machine.log) when each session closed
 
-    def open(self, name: str) -> FakeSession:
+    def open(self, name: str) -> list[FakeSession]:
         if name in self.fail_open:
             raise SessionLost(f"{name}: model failed to load")
         assert name not in self.alive
         self.opened.append(name)
-        self.alive[name] = FakeSession(self.machine, name, **self.session)
-        self.peak_mb = max(self.peak_mb, sum(s.rss_mb for s in self.alive.values()))
+        self.alive[name] = [FakeSession(self.machine, name, **self.session)]
+        self.peak_mb = max(self.peak_mb, sum(s.rss_mb for cell in self.alive.values() for s in cell))
         return self.alive[name]
 
-    def close(self, name: str, session: FakeSession) -> None:
+    def close(self, name: str, session: list[FakeSession]) -> None:
         assert self.alive.pop(name) is session
         self.closed.append(name)
         self.closed_at[name] = len(self.machine.log)
@@ -264,9 +308,9 @@ def test_a_session_lost_in_its_rounds_is_closed_once_and_the_rest_go_on():
     opener = Opener(machine, noise=0.001)
     original_open = opener.open
 
-    def open_with_a_crash(name: str) -> FakeSession:
+    def open_with_a_crash(name: str) -> list[FakeSession]:
         session = original_open(name)
-        session.crash_at = 1 if name == "c2" else None
+        session[0].crash_at = 1 if name == "c2" else None
         return session
 
     rounds = rounds_on(machine, min_rounds=3, target=0.02)
@@ -320,11 +364,11 @@ def test_disturbed_windows_are_kept_apart_while_two_clean_rounds_exist():
     timed = Timed()
     for number in range(6):
         disturbed = number in (1, 4)
-        timed.add(number, window(40.0 if disturbed else 10.0 + number, STEAL if disturbed else None))
-        timed.add(number, window(3.0, kind="throughput"))
-    assert set(timed.dropped[LATENCY]) == {1, 4} and set(timed.kept[LATENCY]) == {0, 2, 3, 5}
-    assert timed.dropped[LATENCY][1].disturbed == STEAL and "throughput" not in timed.dropped
-    assert list(timed.series(LATENCY)) == [0, 2, 3, 5]
+        timed.add((number, 0), window(40.0 if disturbed else 10.0 + number, STEAL if disturbed else None))
+        timed.add((number, 0), window(3.0, kind="throughput"))
+    assert set(timed.dropped[LATENCY]) == {(1, 0), (4, 0)} and round_keys(timed) == set(range(6))
+    assert timed.dropped[LATENCY][1, 0].disturbed == STEAL and "throughput" not in timed.dropped
+    assert list(timed.series(LATENCY)) == [(0, 0), (2, 0), (3, 0), (5, 0)]
     assert timed.series(LATENCY) == timed.series(LATENCY, clean=True)
     assert p50_interval(timed.series(LATENCY)).value == 12.5  # median of 10, 12, 13, 15: the 40s are left out
     assert timed.disturbed_share() == pytest.approx(2 / 12)  # 2 of the 12 windows, every kind counted
@@ -333,9 +377,9 @@ def test_disturbed_windows_are_kept_apart_while_two_clean_rounds_exist():
 def test_series_falls_back_to_every_window_when_fewer_than_two_are_clean():
     timed = Timed()
     for number in range(4):
-        timed.add(number, window(10.0 + number, None if number == 2 else STEAL))
-    assert list(timed.series(LATENCY)) == [0, 1, 2, 3]  # all of them, in round order
-    assert list(timed.series(LATENCY, clean=True)) == [2]
+        timed.add((number, 0), window(10.0 + number, None if number == 2 else STEAL))
+    assert list(timed.series(LATENCY)) == [(r, 0) for r in range(4)]  # all of them, in round order
+    assert list(timed.series(LATENCY, clean=True)) == [(2, 0)]
     assert timed.disturbed_share() == 0.75
     assert Timed().series(LATENCY) == {} and Timed().disturbed_share() == 0.0
 
@@ -343,37 +387,38 @@ def test_series_falls_back_to_every_window_when_fewer_than_two_are_clean():
 def test_speed_ups_pair_clean_rounds_or_every_round_when_fewer_than_two_are_clean_in_both():
     base, cell = Timed(), Timed()
     for number in range(6):  # clean in base in rounds 0-2, in the cell in 3-5: no two rounds clean in both
-        base.add(number, window(20.0 * (1 + number), None if number < 3 else STEAL))
-        cell.add(number, window(10.0 * (1 + number), None if number >= 3 else STEAL))
+        base.add((number, 0), window(20.0 * (1 + number), None if number < 3 else STEAL))
+        cell.add((number, 0), window(10.0 * (1 + number), None if number >= 3 else STEAL))
     found = paired(base, cell)
     assert found is not None and found.rounds == 6 and found.value == pytest.approx(2.0)
     assert paired(base, cell, clean=True) is None  # what decides stopping counts clean rounds only
-    cell.add(6, window(35.0))
-    base.add(6, window(140.0))
-    cell.add(7, window(40.0))
-    base.add(7, window(160.0))
+    cell.add((6, 0), window(35.0))
+    base.add((6, 0), window(140.0))
+    cell.add((7, 0), window(40.0))
+    base.add((7, 0), window(160.0))
     assert paired(base, cell).rounds == 2 and paired(base, cell).value == pytest.approx(4.0)
 
 
 def test_disturbed_rounds_do_not_count_towards_stopping():
     machine = Machine(seed=13)
     sessions = cells(machine, ["base"], noise=0.001)
-    sessions["x"] = FakeSession(machine, "x", noise=0.001, disturbed_at=(1, 3))
+    sessions["x"] = [FakeSession(machine, "x", noise=0.001, disturbed_at=(1, 3))]
     timed = {name: Timed() for name in sessions}
     rounds = rounds_on(machine, min_rounds=5, target=0.02)
     assert rounds.run(sessions, timed, "base", budget_s=1e9) == "width"
     assert len(rounds.orders) == 7  # x's 5th clean round is round 6
-    assert set(timed["x"].dropped[LATENCY]) == {1, 3} and timed["x"].disturbed_share() == pytest.approx(2 / 7)
+    assert set(timed["x"].dropped[LATENCY]) == {(1, 0), (3, 0)}
+    assert timed["x"].disturbed_share() == pytest.approx(2 / 7)
 
     machine = Machine(seed=15)  # pairs need 5 rounds clean in both: base's 0 and 2 are out, x's 1 and 3
-    sessions = {"base": FakeSession(machine, "base", disturbed_at=(0, 2)),
-                "x": FakeSession(machine, "x", disturbed_at=(1, 3))}
+    sessions = {"base": [FakeSession(machine, "base", disturbed_at=(0, 2))],
+                "x": [FakeSession(machine, "x", disturbed_at=(1, 3))]}
     timed = {name: Timed() for name in sessions}
     rounds = rounds_on(machine, min_rounds=5, target=0.02)
     assert rounds.run(sessions, timed, "base", budget_s=1e9) == "width"
     assert len(rounds.orders) == 9 and paired(timed["base"], timed["x"], clean=True).rounds == 5
 
     machine = Machine(seed=14)
-    always = {"x": FakeSession(machine, "x", noise=0.001, disturbed_at=tuple(range(100)))}
+    always = {"x": [FakeSession(machine, "x", noise=0.001, disturbed_at=tuple(range(100)))]}
     rounds = rounds_on(machine, min_rounds=5, max_rounds=12, target=0.02)
     assert rounds.run(always, {"x": Timed()}, None, budget_s=1e9) == "rounds"

@@ -201,12 +201,17 @@ def test_a_cell_that_streams_finishes_holding_the_machine_timing_lock(tmp_path: 
         held.append("exit")
 
     def cell(key: str, scenarios: tuple) -> SimpleNamespace:
-        return SimpleNamespace(id=key, cell=SimpleNamespace(label=key), scenarios=scenarios)
+        return SimpleNamespace(id=key, cell=SimpleNamespace(label=key), scenarios=scenarios,
+                               settings=SimpleNamespace(processes=2))
 
     job = SimpleNamespace(cells=(cell("plain", ()), cell("streams", (StreamPlan(StreamSpec()),))),
                           logs=("a.log", "b.log"))
     sessions = _Sessions(job, tmp_path, tmp_path, lambda _: None, hold=hold)
-    session = SimpleNamespace(finish=lambda: finishing.append(list(held)), close=lambda: None)
-    sessions.close("plain", session)
-    sessions.close("streams", session)
-    assert finishing == [[], ["enter"]] and held == ["enter", "exit"]
+    closed: list[str] = []
+    first = SimpleNamespace(finish=lambda: finishing.append(list(held)), close=lambda: closed.append("first"))
+    second = SimpleNamespace(finish=lambda: finishing.append(["second"]),
+                             close=lambda: closed.append("second"))
+    sessions.close("plain", [first, second])
+    sessions.close("streams", [first, second])
+    assert finishing == [[], ["enter"]] and held == ["enter", "exit"]  # finished in its first process only
+    assert closed == ["first", "second"] * 2

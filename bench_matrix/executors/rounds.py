@@ -1,6 +1,6 @@
-"""A rounds job on this machine (docs/metrics.md §5): each cell's session loaded in its own process, the
-sessions timed in interleaved rounds under the machine's timing lock (the scheduler owns the clock), then
-each evaluated; the timed figures come from the rounds."""
+"""A rounds job on this machine (docs/metrics.md §5): each cell's session loaded in `settings.processes`
+processes of its own, the sessions timed in interleaved rounds under the machine's timing lock (the scheduler
+owns the clock), then each cell evaluated in its first; the timed figures come from the rounds."""
 
 from __future__ import annotations
 
@@ -14,10 +14,12 @@ from bench_matrix.jobs import RoundsJob
 from bench_matrix.jobs.results import CellMeasured, Measured, MeasuredGroup
 from bench_matrix.measure import env as environment
 from bench_matrix.measure.machine_lock import TimingWindow, timing_slot
-from bench_matrix.measure.schedule import LATENCY, Rounds, RoundsSettings, SessionLost, Timed, measure_groups
+from bench_matrix.measure.rounds import Spread
+from bench_matrix.measure.schedule import (LATENCY, Rounds, RoundsSettings, SessionLost, Timed,
+                                           measure_groups, spread)
 from bench_matrix.measurement import Measurement
 from bench_matrix.scenarios.latency import LIMITS
-from bench_matrix.scenarios.timed import figures
+from bench_matrix.scenarios.timed import SAMPLED, THROUGHPUT, figures
 
 DISTURBED_SHARE = 0.25  # more of a kind's windows disturbed than this marks the cell
 
@@ -27,7 +29,7 @@ def rounds_settings(job: RoundsJob) -> RoundsSettings:
     settings = job.cells[0].settings
     return RoundsSettings(min_rounds=settings.min_rounds, budget_s=settings.timing_budget_s * len(job.cells),
                           target=settings.ci_target, disturbed_share=DISTURBED_SHARE,
-                          window_s=settings.window_s)
+                          window_s=settings.window_s, processes=settings.processes)
 
 
 def measure_in_rounds(job: RoundsJob, workdir: Path, logs: Path, on_phase: Callable[[str], None]
@@ -50,13 +52,16 @@ def measure_in_rounds(job: RoundsJob, workdir: Path, logs: Path, on_phase: Calla
     window = {"waited_s": round(sum(w.waited_s for w in windows), 3), "rounds": rounds.number,
               "rounds_s": round(sum((w.end or w.start) - w.start for w in windows), 3),
               "held": [[w.start, w.end] for w in windows]}
-    return MeasuredGroup(tuple(_result(key, timed[key], against.get(key, base), sessions, settings, window)
+    spreads = {kind: spread(timed.values(), kind, rate=kind == THROUGHPUT) for kind in SAMPLED}
+    return MeasuredGroup(tuple(_result(key, timed[key], against.get(key, base), sessions, settings,
+                                       window, spreads)
                                for key in sessions.jobs))
 
 
 class _Sessions:
-    """The job's sessions: each opened when the scheduler asks, finished (evaluated, its scenarios run: under
-    `hold`, the machine's timing lock, when one of them is timed) and closed once its rounds are done."""
+    """The job's sessions: each cell's processes started together (they load side by side) when the scheduler
+    asks, the cell finished in its first (evaluated, its scenarios run: under `hold`, the machine's timing
+    lock, when one of them is timed) and every process closed once its rounds are done."""
 
     def __init__(self, job: RoundsJob, workdir: Path, logs: Path, on_phase: Callable[[str], None],
                  hold: Callable[[], AbstractContextManager]):
@@ -64,31 +69,53 @@ class _Sessions:
         self.hold = hold
         self.logs = {cell.id: logs / name for cell, name in zip(job.cells, job.logs)}
         self.workdir, self.on_phase = workdir, on_phase
-        self.opened: dict[str, SessionProcess] = {}
+        self.processes = job.cells[0].settings.processes
+        self.opened: dict[str, list[SessionProcess]] = {}
         self.finished: dict[str, Measured | SessionLost] = {}
 
-    def open(self, key: str) -> SessionProcess:
+    def open(self, key: str) -> list[SessionProcess]:
         job = self.jobs[key]
-        self.on_phase(f"loading {job.cell.label}" + (f" ({job.side})" if job.side else ""))
-        self.opened[key] = SessionProcess(job, self.workdir, self.logs[key], job.settings.timeout_s)
-        self.opened[key].ready()
-        return self.opened[key]
+        self.on_phase(f"loading {job.cell.label}" + (f" ({job.side})" if job.side else "")
+                      + (f" in {self.processes} processes" if self.processes > 1 else ""))
+        cell = self.opened.setdefault(key, [])  # each one kept as it starts: Ctrl-C meanwhile kills it too
+        try:
+            for j in range(self.processes):
+                log = _log(self.logs[key], j)
+                cell.append(SessionProcess(job, self.workdir, log, job.settings.timeout_s))
+            for session in cell:
+                session.ready()
+        except SessionLost:
+            for session in cell:
+                session.kill()
+            raise
+        return cell
 
-    def close(self, key: str, session: SessionProcess) -> None:
+    def close(self, key: str, cell: list[SessionProcess]) -> None:
+        """Finish the cell in its first process, then end them all."""
         job = self.jobs[key]
         self.on_phase(f"evaluating {job.cell.label}")
         timed = any(planned.timed() for planned in job.scenarios)
         try:
             with self.hold() if timed else nullcontext():
-                self.finished[key] = session.finish()
+                self.finished[key] = cell[0].finish()
         except SessionLost as lost:
             self.finished[key] = lost
         finally:
-            session.close()
+            for session in cell:
+                session.close()
+
+    def user_error(self, key: str) -> bool:
+        return any(session.user_error for session in self.opened.get(key, ()))
 
     def kill(self) -> None:
-        for session in self.opened.values():
-            session.kill()
+        for cell in self.opened.values():
+            for session in cell:
+                session.kill()
+
+
+def _log(path: Path, process: int) -> Path:
+    """The log of a cell's `process` (0-based): the cell's own log for the first, `NAME.2.log` and so on."""
+    return path if process == 0 else path.with_name(f"{path.stem}.{process + 1}{path.suffix}")
 
 
 @contextmanager
@@ -102,15 +129,14 @@ def _slot(job: RoundsJob, windows: list[TimingWindow], on_phase: Callable[[str],
 
 
 def _result(key: str, timed: Timed, base: Timed | None, sessions: _Sessions, settings: RoundsSettings,
-            window: dict) -> CellMeasured:
+            window: dict, spreads: dict[str, Spread | None]) -> CellMeasured:
     """The cell's measurement: its timed figures first, then what its session measured; or why it failed."""
-    done, session = sessions.finished.get(key), sessions.opened.get(key)
-    user_error = bool(session and session.user_error)
+    done, user_error = sessions.finished.get(key), sessions.user_error(key)
     if timed.failed or isinstance(done, SessionLost) or done is None:
         return CellMeasured(key, error=timed.failed or str(done or "not measured"), user_error=user_error)
     if not timed.series(LATENCY):
         return CellMeasured(key, error="no window was timed (its rounds stopped first)")
-    timing = figures(timed, base, settings, LIMITS)
+    timing = figures(timed, base, settings, LIMITS, spreads)
     fields = {**timing.fields, "timing_window": window, **done.metrics.to_json()}
     return CellMeasured(key, Measured(Measurement.from_json(fields), {**timing.samples, **done.samples},
                                       done.env))

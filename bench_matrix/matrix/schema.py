@@ -296,6 +296,8 @@ SCHEMA: dict[str, Any] = {
             "timing_budget_s": seconds(exclusive=True, description="seconds of rounds per cell at most: a "
                                                                    "model's rounds stop when its cells' "
                                                                    "share is spent"),
+            "processes": _count(1, 16, description="session processes per cell, timed in the same rounds; "
+                                                    "how they differ widens the intervals"),
             "memory_share": {"type": "number", "exclusiveMinimum": 0, "maximum": 1,
                              "description": "share of the available memory the loaded sessions of a model "
                                             "may use at once; beyond it, cells are measured in groups"},

@@ -1,6 +1,7 @@
-"""Statistics over interleaved rounds (docs/metrics.md §5): every cell is timed once per round, so a cell's
-uncertainty comes from how its per-round medians spread (slow drift widens it) and its speed-up against the
-baseline is paired, round by round (drift both cells shared cancels)."""
+"""Statistics over interleaved rounds (docs/metrics.md §5): every session process of every cell is timed once
+per round, so a cell's uncertainty comes from how its per-round medians spread (slow drift widens it) and
+from how its processes differ (pooled over the model's cells); its speed-up against the baseline is paired,
+round by round (drift both cells shared cancels)."""
 
 from __future__ import annotations
 
@@ -15,13 +16,16 @@ T95 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228,
        2.201, 2.179, 2.160, 2.145, 2.131, 2.120, 2.110, 2.101, 2.093, 2.086,
        2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045, 2.042)
 
-
 RERUN = math.sqrt(2)  # a rerun's figure has the same uncertainty as this one: their difference sqrt(2) times
+PRIOR_DOF = 4  # the model's pooled process spread counts as this many degrees of freedom beside a cell's own
+
+Slot = tuple[int, int]  # (round, process): one window of one of a cell's session processes
 
 
-def t95(df: int) -> float:
-    """Student's t two-sided 95 % quantile for `df` >= 1 degrees of freedom."""
-    return T95[df - 1] if df <= len(T95) else 1.96 + 2.5 / df
+def t95(df: float) -> float:
+    """Student's t two-sided 95 % quantile for `df` >= 1 degrees of freedom (a fractional df rounds down)."""
+    whole = max(int(df), 1)
+    return T95[whole - 1] if whole <= len(T95) else 1.96 + 2.5 / whole
 
 
 @dataclass(frozen=True)
@@ -43,29 +47,103 @@ class Interval:
                 "rounds": self.rounds}
 
 
-def log_interval(value: float, per_round: Iterable[float], spread: float = 1.0) -> Interval | None:
-    """`value` with the 95 % interval of a t-interval on the logs of its per-round estimates (ratios and
-    times are multiplicative), `spread` times as wide, shifted to `value`; None with fewer than 2 rounds or a
-    non-positive figure."""
-    logs = np.log(np.asarray([x for x in per_round], dtype=np.float64)) if value > 0 else np.array([])
-    if logs.size < 2 or not np.all(np.isfinite(logs)):
+@dataclass(frozen=True)
+class Spread:
+    """How a cell's session processes differ for their lifetime: the variance of that effect on the log
+    level (an estimate: below 0 where the windows' own noise explains all of it), its degrees of freedom."""
+
+    variance: float
+    dof: float
+
+    @property
+    def relative(self) -> float:
+        """One process's typical distance from the cell's level (0.013 = 1.3 %)."""
+        return math.sqrt(max(self.variance, 0.0))
+
+
+def process_spread(levels: Mapping[Slot, float]) -> Spread | None:
+    """The spread of a cell's processes from its log levels by slot, as a random effect: the variance of
+    each process's mean offset from the rounds' means (the drift a round shared cancels) less what the
+    windows' own noise puts into it; None with fewer than 2 processes or 2 rounds."""
+    offsets, means = _offsets(levels), _round_means(levels)
+    rounds = len(means)
+    residual_dof = len(levels) - rounds - len(offsets) + 1
+    if len(offsets) < 2 or rounds < 2 or residual_dof < 1:
         return None
-    half = spread * t95(logs.size - 1) * float(logs.std(ddof=1)) / math.sqrt(logs.size)
-    return Interval(value, value * math.exp(-half), value * math.exp(half), int(logs.size))
+    residuals = [y - means[r] - offsets[j] for (r, j), y in levels.items()]
+    noise = float(np.sum(np.square(residuals))) / residual_dof  # a window's own, beyond its round and process
+    between = float(np.sum(np.square(list(offsets.values())))) / (len(offsets) - 1)
+    per_process = len(levels) / len(offsets)  # windows each process has, on average
+    return Spread(between - noise / per_process, len(offsets) - 1)
 
 
-def medians_by_round(series: Mapping[int, np.ndarray]) -> dict[int, float]:
-    """The median of each round's kept window."""
-    return {r: float(np.median(values)) for r, values in series.items() if len(values)}
+def pooled(spreads: Iterable[Spread | None]) -> Spread | None:
+    """The spreads of a model's cells pooled, weighted by their degrees of freedom; None without any."""
+    found = [s for s in spreads if s is not None]
+    dof = sum(s.dof for s in found)
+    return Spread(sum(s.variance * s.dof for s in found) / dof, dof) if dof else None
 
 
-def p50_interval(series: Mapping[int, np.ndarray]) -> Interval | None:
-    """The pooled median of every round's window with the interval a rerun's would fall in: that of the
-    per-round medians, RERUN times as wide."""
+def moderated(own: Spread | None, model: Spread | None) -> Spread | None:
+    """A cell's own process spread drawn towards the model's pooled one, which counts as at most PRIOR_DOF
+    degrees of freedom (a moderated variance, as limma's, Smyth 2004)."""
+    if own is None or model is None:
+        return own or model
+    prior = min(PRIOR_DOF, model.dof)
+    return Spread((prior * model.variance + own.dof * own.variance) / (prior + own.dof), prior + own.dof)
+
+
+def _process_part(levels: Mapping[Slot, float], model: Spread | None) -> list[tuple[float, float]]:
+    """The processes' part of a cell level's variance (its moderated spread ÷ its processes), with its
+    degrees of freedom; none with one process, or where the spread is not above 0."""
+    own, processes = moderated(process_spread(levels), model), len({j for _, j in levels})
+    return [(own.variance / processes, own.dof)] if own and processes > 1 and own.variance > 0 else []
+
+
+def log_levels(values: Mapping[Slot, float]) -> dict[Slot, float]:
+    """The logarithms of positive finite values by slot (times and ratios are multiplicative)."""
+    return {slot: math.log(v) for slot, v in values.items() if v > 0 and math.isfinite(v)}
+
+
+def level_interval(value: float, levels: Mapping[Slot, float], model: Spread | None,
+                   spread: float = 1.0) -> Interval | None:
+    """`value` with the 95 % interval of its log level: the rounds' part (the spread of the per-round means)
+    and the processes' (the cell's moderated spread ÷ its processes), `spread` times as wide; None with fewer
+    than 2 rounds or a non-positive figure."""
+    means = _round_means(levels)
+    if value <= 0 or len(means) < 2:
+        return None
+    by_rounds = (float(np.var(list(means.values()), ddof=1)) / len(means), len(means) - 1)
+    return _interval(value, [by_rounds, *_process_part(levels, model)], spread, len(means))
+
+
+def paired_interval(baseline: Mapping[Slot, float], cell: Mapping[Slot, float],
+                    model: Spread | None) -> Interval | None:
+    """Baseline ÷ cell from their log levels, paired by round (the ratio of their per-round means over the
+    rounds both have, geometric mean), with the rounds' part and both cells' process parts; None with fewer
+    than 2 such rounds."""
+    base, mine = _round_means(baseline), _round_means(cell)
+    ratios = [base[r] - mine[r] for r in sorted(set(base) & set(mine))]
+    if len(ratios) < 2:
+        return None
+    parts = [(float(np.var(ratios, ddof=1)) / len(ratios), len(ratios) - 1),
+             *_process_part(baseline, model), *_process_part(cell, model)]
+    return _interval(math.exp(float(np.mean(ratios))), parts, 1.0, len(ratios))
+
+
+def medians(series: Mapping[Slot, np.ndarray]) -> dict[Slot, float]:
+    """The median of each slot's kept window."""
+    return {slot: float(np.median(values)) for slot, values in series.items() if len(values)}
+
+
+def p50_interval(series: Mapping[Slot, np.ndarray], model: Spread | None = None) -> Interval | None:
+    """The pooled median of every window with the interval a rerun's would fall in: `level_interval`'s of the
+    per-window medians, RERUN times as wide."""
     if not series:
         return None
-    pooled = float(np.median(np.concatenate([np.asarray(v, dtype=np.float64) for v in series.values()])))
-    return log_interval(pooled, medians_by_round(series).values(), RERUN)
+    pooled_median = float(np.median(np.concatenate([np.asarray(v, dtype=np.float64)
+                                                    for v in series.values()])))
+    return level_interval(pooled_median, log_levels(medians(series)), model, RERUN)
 
 
 def level_width(p50: Interval) -> float:
@@ -74,17 +152,38 @@ def level_width(p50: Interval) -> float:
     return p50.half_width / RERUN
 
 
-def speedup(baseline: Mapping[int, float], cell: Mapping[int, float]) -> Interval | None:
-    """Baseline time ÷ cell time, paired by round: the geometric mean of the per-round ratios over the rounds
-    both have, with its interval (None with fewer than 2 such rounds)."""
-    rounds = sorted(set(baseline) & set(cell))
-    ratios = [baseline[r] / cell[r] for r in rounds if cell[r] > 0 and baseline[r] > 0]
-    if len(ratios) < 2:
-        return None
-    return log_interval(float(np.exp(np.mean(np.log(ratios)))), ratios)
+def speedup(baseline: Mapping[Slot, float], cell: Mapping[Slot, float],
+            model: Spread | None = None) -> Interval | None:
+    """Baseline time ÷ cell time from their per-window medians, paired by round (`paired_interval`)."""
+    return paired_interval(log_levels(baseline), log_levels(cell), model)
 
 
-def rate_interval(rates: Mapping[int, float], samples: float, seconds: float) -> Interval | None:
+def rate_interval(rates: Mapping[Slot, float], samples: float, seconds: float,
+                  model: Spread | None = None) -> Interval | None:
     """A throughput: `samples` ÷ `seconds` over every kept window, with the interval a rerun's would fall in
-    (from the per-round rates, as for the p50)."""
-    return log_interval(samples / seconds, rates.values(), RERUN) if seconds > 0 else None
+    (from the per-window rates, as for the p50)."""
+    return level_interval(samples / seconds, log_levels(rates), model, RERUN) if seconds > 0 else None
+
+
+def _round_means(levels: Mapping[Slot, float]) -> dict[int, float]:
+    by_round: dict[int, list[float]] = {}
+    for (r, _), y in levels.items():
+        by_round.setdefault(r, []).append(y)
+    return {r: float(np.mean(ys)) for r, ys in by_round.items()}
+
+
+def _offsets(levels: Mapping[Slot, float]) -> dict[int, float]:
+    """Each process's mean distance from the means of the rounds it was timed in."""
+    means, by_process = _round_means(levels), {}
+    for (r, j), y in levels.items():
+        by_process.setdefault(j, []).append(y - means[r])
+    return {j: float(np.mean(d)) for j, d in by_process.items()}
+
+
+def _interval(value: float, parts: list[tuple[float, float]], spread: float, rounds: int) -> Interval:
+    """`value` ± t·sqrt(Σ variances) on the log scale, the degrees of freedom Welch–Satterthwaite's."""
+    variance = sum(v for v, _ in parts)
+    denominator = sum(v * v / dof for v, dof in parts if dof > 0)
+    dof = variance * variance / denominator if denominator > 0 else 1e9
+    half = spread * t95(dof) * math.sqrt(variance)
+    return Interval(value, value * math.exp(-half), value * math.exp(half), rounds)

@@ -1,20 +1,22 @@
-"""The rounds scheduler (docs/metrics.md §5): the harness owns the clock. A model's loaded sessions are timed
-in short windows, round by round, each round visiting every cell once in a fresh random order, until every
-cell's p50 and speed-up intervals are narrow enough (each cell leaves them once it is) or the time budget is
-spent; as many sessions are alive at once as fit the memory budget, the baseline in every group."""
+"""The rounds scheduler (docs/metrics.md §5): the harness owns the clock. A model's loaded sessions (each cell
+in one or more processes) are timed in short windows, round by round, each round visiting every process of
+every cell once in a fresh random order, until every cell's p50 and speed-up intervals are narrow enough
+(each cell leaves them once it is) or the time budget is spent; as many cells are alive at once as fit the
+memory budget, the baseline in every group."""
 
 from __future__ import annotations
 
 import random
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
 
-from bench_matrix.measure.rounds import Interval, level_width, medians_by_round, p50_interval, speedup
+from bench_matrix.measure.rounds import (Interval, Slot, Spread, level_width, log_levels, medians,
+                                         p50_interval, pooled, process_spread, speedup)
 
 LATENCY = "latency"  # the kind of window whose intervals decide when the rounds stop
 
@@ -49,7 +51,7 @@ class Session(Protocol):
 class RoundsSettings:
     """When rounds stop: every interval within ±`target` after `min_rounds`, or `budget_s` spent (or
     `max_rounds`); a cell whose windows were disturbed more than `disturbed_share` of the time is marked;
-    each window's length (the sessions time it)."""
+    each window's length and each cell's number of session processes (the executor's to start)."""
 
     min_rounds: int = 5
     max_rounds: int = 200
@@ -57,57 +59,84 @@ class RoundsSettings:
     target: float = 0.02
     disturbed_share: float = 0.25
     window_s: float = 0.2
+    processes: int = 1
+
+
+Cell = Sequence[Session]  # a cell's session processes, each timed once per round
 
 
 @dataclass
 class Timed:
-    """What the rounds gave one cell: its windows by kind and round (clean ones kept, disturbed ones apart),
-    why it failed, and how its rounds ended."""
+    """What the rounds gave one cell: its windows by kind and slot (round, process), clean ones kept,
+    disturbed ones apart; why it failed, and how its rounds ended."""
 
-    kept: dict[str, dict[int, Window]] = field(default_factory=dict)
-    dropped: dict[str, dict[int, Window]] = field(default_factory=dict)
+    kept: dict[str, dict[Slot, Window]] = field(default_factory=dict)
+    dropped: dict[str, dict[Slot, Window]] = field(default_factory=dict)
     failed: str | None = None
     stop: str = ""  # "width": every interval narrow enough; "budget": time ran out; "rounds": max_rounds
 
-    def add(self, number: int, window: Window) -> None:
-        (self.kept if window.disturbed is None else self.dropped).setdefault(window.kind, {})[number] = window
+    def add(self, slot: Slot, window: Window) -> None:
+        (self.kept if window.disturbed is None else self.dropped).setdefault(window.kind, {})[slot] = window
 
-    def windows(self, kind: str, clean: bool = False, every: bool = False) -> dict[int, Window]:
-        """The windows a figure is computed from, by round: the clean ones, or (unless `clean`) every one when
-        fewer than 2 were clean, or when `every`."""
+    def windows(self, kind: str, clean: bool = False, every: bool = False) -> dict[Slot, Window]:
+        """The windows a figure is computed from, by slot: the clean ones, or (unless `clean`) every one when
+        fewer than 2 rounds were clean, or when `every`."""
         kept = self.kept.get(kind, {})
-        chosen = kept if clean or (len(kept) >= 2 and not every) else {**self.dropped.get(kind, {}), **kept}
+        enough = len({r for r, _ in kept}) >= 2
+        chosen = kept if clean or (enough and not every) else {**self.dropped.get(kind, {}), **kept}
         return dict(sorted(chosen.items()))
 
-    def series(self, kind: str, clean: bool = False, every: bool = False) -> dict[int, np.ndarray]:
-        """Those windows' durations in ms, by round."""
-        return {r: w.durations_ms for r, w in self.windows(kind, clean, every).items()}
+    def series(self, kind: str, clean: bool = False, every: bool = False) -> dict[Slot, np.ndarray]:
+        """Those windows' durations in ms, by slot."""
+        return {slot: w.durations_ms for slot, w in self.windows(kind, clean, every).items()}
+
+    def rounds(self, kind: str = LATENCY) -> int:
+        """The rounds whose windows its figures of `kind` pool."""
+        return len({r for r, _ in self.windows(kind)})
 
     def disturbed_share(self) -> float:
         windows = sum(len(v) for v in self.kept.values()) + sum(len(v) for v in self.dropped.values())
         return sum(len(v) for v in self.dropped.values()) / windows if windows else 0.0
 
 
-def paired(baseline: Timed | None, timed: Timed, clean: bool = False) -> Interval | None:
+def spread(cells: Iterable[Timed], kind: str = LATENCY, rate: bool = False) -> Spread | None:
+    """How the session processes of a model's cells differ in `kind`'s windows (their medians, or their
+    `rate`s), pooled over the cells (from their clean windows)."""
+    def levels(timed: Timed) -> dict[Slot, float]:
+        clean = timed.windows(kind, clean=True)
+        return rates(clean) if rate else medians({slot: w.durations_ms for slot, w in clean.items()})
+
+    return pooled(process_spread(log_levels(levels(t))) for t in cells)
+
+
+def rates(windows: Mapping[Slot, Window]) -> dict[Slot, float]:
+    """Samples per second of each window (a throughput window's batches)."""
+    return {slot: w.samples * len(w.durations_ms) / (float(w.durations_ms.sum()) / 1e3)
+            for slot, w in windows.items() if float(w.durations_ms.sum()) > 0}
+
+
+def paired(baseline: Timed | None, timed: Timed, model: Spread | None = None,
+           clean: bool = False) -> Interval | None:
     """The cell's speed-up against the baseline, paired by round: over the rounds both had clean, or (unless
     `clean`) every round both had when fewer than 2 were clean: what disturbs a round disturbs both."""
     if baseline is None:
         return None
-    found = speedup(*(medians_by_round(t.series(LATENCY, clean=True)) for t in (baseline, timed)))
+    found = speedup(*(medians(t.series(LATENCY, clean=True)) for t in (baseline, timed)), model)
     if found is not None or clean:
         return found
-    return speedup(*(medians_by_round(t.series(LATENCY, every=True)) for t in (baseline, timed)))
+    return speedup(*(medians(t.series(LATENCY, every=True)) for t in (baseline, timed)), model)
 
 
-def narrow(timed: Timed, baseline: Timed | None, settings: RoundsSettings) -> bool:
+def narrow(timed: Timed, baseline: Timed | None, settings: RoundsSettings,
+           model: Spread | None = None) -> bool:
     """Whether the cell's p50 interval (and speed-up interval, beside a baseline) is within the target after
-    the minimum number of clean rounds."""
-    p50 = p50_interval(timed.series(LATENCY, clean=True))
+    the minimum number of clean rounds (`model`: the model's pooled process spread)."""
+    p50 = p50_interval(timed.series(LATENCY, clean=True), model)
     if p50 is None or p50.rounds < settings.min_rounds or level_width(p50) > settings.target:
         return False
     if baseline is None or baseline is timed:
         return True
-    ratio = paired(baseline, timed, clean=True)
+    ratio = paired(baseline, timed, model, clean=True)
     return ratio is not None and ratio.rounds >= settings.min_rounds and ratio.half_width <= settings.target
 
 
@@ -124,12 +153,12 @@ class Rounds:
         self.settings, self.rng, self.clock = settings, rng or random.Random(), clock
         self.hold, self.on_round, self.references = hold, on_round, dict(references or {})
         self.number = 0  # rounds run so far, over every group (the baseline's rounds are numbered so)
-        self.orders: list[tuple[str, ...]] = []
+        self.orders: list[tuple[str, ...]] = []  # each round's cells in the order timed (one per process)
 
-    def run(self, sessions: Mapping[str, Session], timed: dict[str, Timed], baseline: str | None,
+    def run(self, sessions: Mapping[str, Cell], timed: dict[str, Timed], baseline: str | None,
             budget_s: float) -> str:
-        """Rounds over `sessions` until every cell has left them narrow enough, or `budget_s` is spent; why
-        they stopped. A lost session's cell fails and leaves the rounds."""
+        """Rounds over `sessions` (each cell's processes) until every cell has left them narrow enough, or
+        `budget_s` is spent; why they stopped. A lost session fails its cell, which leaves the rounds."""
         with self.hold():
             live = dict(sessions)
             start, count, settled = self.clock(), 0, False
@@ -145,7 +174,7 @@ class Rounds:
                     return "budget"
             return "width" if settled else "failed"
 
-    def _settle(self, live: dict[str, Session], timed: dict[str, Timed], baseline: str | None) -> bool:
+    def _settle(self, live: dict[str, Cell], timed: dict[str, Timed], baseline: str | None) -> bool:
         """Cells narrow enough leave the rounds (their stop: width), the budget going to the others; a cell
         stays while another still in them is paired against it. Whether any left."""
         def reference(key: str) -> str | None:
@@ -154,7 +183,8 @@ class Rounds:
         def against(key: str) -> Timed | None:
             return timed[reference(key)] if reference(key) in live else None
 
-        leaving = {key for key in live if narrow(timed[key], against(key), self.settings)}
+        model = spread(timed.values())
+        leaving = {key for key in live if narrow(timed[key], against(key), self.settings, model)}
         while needed := leaving & {reference(key) for key in live if key not in leaving}:
             leaving -= needed
         for key in leaving:
@@ -162,26 +192,30 @@ class Rounds:
             del live[key]
         return bool(leaving)
 
-    def _round(self, live: dict[str, Session], timed: dict[str, Timed]) -> None:
-        order = tuple(self.rng.sample(sorted(live), len(live)))
-        self.orders.append(order)
+    def _round(self, live: dict[str, Cell], timed: dict[str, Timed]) -> None:
+        units = [(key, process) for key in sorted(live) for process in range(len(live[key]))]
+        order = self.rng.sample(units, len(units))
+        self.orders.append(tuple(key for key, _ in order))
         self.on_round(self.number)
-        for key in order:
+        for key, process in order:
+            if key not in live:  # another of its processes was lost this round
+                continue
             try:
-                for kind in live[key].kinds:
-                    timed[key].add(self.number, live[key].window(kind))
+                session = live[key][process]
+                for kind in session.kinds:
+                    timed[key].add((self.number, process), session.window(kind))
             except SessionLost as lost:
                 timed[key].failed = str(lost)
                 del live[key]
         self.number += 1
 
 
-def measure_groups(keys: list[str], baseline: str | None, open_session: Callable[[str], Session],
-                   close: Callable[[str, Session], None], memory_mb: float,
+def measure_groups(keys: list[str], baseline: str | None, open_session: Callable[[str], Cell],
+                   close: Callable[[str, Cell], None], memory_mb: float,
                    rounds: Rounds) -> dict[str, Timed]:
     """Time `keys` in groups that fit `memory_mb` of resident memory (the baseline, opened first, in every
-    group); each group's share of the budget is its share of the cells. `close` ends each session once its
-    rounds are done (the baseline's after the last group)."""
+    group); each group's share of the budget is its share of the cells. `open_session` loads a cell's
+    processes, `close` ends them once its rounds are done (the baseline's after the last group)."""
     timed = {key: Timed() for key in keys}
     base = _opened(baseline, open_session, timed) if baseline in timed else None
     waiting = [key for key in keys if key != baseline]
@@ -192,7 +226,7 @@ def measure_groups(keys: list[str], baseline: str | None, open_session: Callable
         while waiting and (len(group) < 1 + (base is not None) or _rss(group) + largest <= memory_mb):
             key = waiting.pop(0)
             if session := _opened(key, open_session, timed):
-                group[key], largest = session, max(largest, session.rss_mb)
+                group[key], largest = session, max(largest, _rss({key: session}))
         members = [key for key in group if key != baseline]
         if members or (base is not None and not waiting and not _timed(timed[baseline])):
             stop = rounds.run(group, timed, baseline if base is not None else None,
@@ -213,11 +247,11 @@ def _timed(cell: Timed) -> bool:
     return bool(cell.kept or cell.dropped)
 
 
-def _rss(group: Mapping[str, Session]) -> float:
-    return sum(session.rss_mb for session in group.values())
+def _rss(group: Mapping[str, Cell]) -> float:
+    return sum(session.rss_mb for cell in group.values() for session in cell)
 
 
-def _opened(key: str, open_session: Callable[[str], Session], timed: dict[str, Timed]) -> Session | None:
+def _opened(key: str, open_session: Callable[[str], Cell], timed: dict[str, Timed]) -> Cell | None:
     try:
         return open_session(key)
     except SessionLost as lost:
@@ -225,7 +259,7 @@ def _opened(key: str, open_session: Callable[[str], Session], timed: dict[str, T
         return None
 
 
-def _end(key: str, session: Session, timed: dict[str, Timed], stop: str, close: Callable[[str, Session], None]
+def _end(key: str, session: Cell, timed: dict[str, Timed], stop: str, close: Callable[[str, Cell], None]
          ) -> None:
     if not timed[key].stop:
         timed[key].stop = stop

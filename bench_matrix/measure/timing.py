@@ -64,10 +64,11 @@ def time_calls(call: Callable[[Any], Any], inputs: list[Any], settings: LoopSett
 
 
 def latency_window(call: Callable[[Any], Any], inputs: list[Any], seconds: float,
-                   sampler: Sampler | None = None, clock: Clock = time.perf_counter_ns) -> np.ndarray:
-    """One round's window: a short warm-up, then durations in ns of calls until `seconds` have passed (at
-    least one call)."""
-    window = LoopSettings(WINDOW_WARMUP, seconds * WINDOW_WARMUP_SHARE, 1, seconds, seconds)
+                   sampler: Sampler | None = None, clock: Clock = time.perf_counter_ns,
+                   warmup: int = WINDOW_WARMUP) -> np.ndarray:
+    """One round's window: a short warm-up (`warmup` calls, and WINDOW_WARMUP_SHARE of the window at least),
+    then durations in ns of calls until `seconds` have passed (at least one call)."""
+    window = LoopSettings(warmup, seconds * WINDOW_WARMUP_SHARE, 1, seconds, seconds)
     return time_calls(call, inputs, window, sampler, clock)
 
 

@@ -58,7 +58,11 @@ def timing_line(model: ModelSummary) -> str:
     span = f"{counts[0]}" if counts[0] == counts[-1] else f"{counts[0]}–{counts[-1]}"
     stopped = sum(f.stop == "budget" for f in facts)
     budget = f"; {stopped} stopped by the time budget" if stopped else ""
-    return (f"Timed in {span} interleaved rounds of {length} windows per cell, each round in a fresh random "
+    processes = max((f.processes or 1) for f in facts)
+    spread = max((f.model_spread for f in facts if f.model_spread is not None), default=None)
+    where = (f"each cell in {processes} processes (they differed by {spread:.1%}, in the intervals)"
+             if processes > 1 and spread is not None else "per cell")
+    return (f"Timed in {span} interleaved rounds of {length} windows, {where}, each round in a fresh random "
             f"order{budget}; p50 intervals from the per-round medians.")
 
 

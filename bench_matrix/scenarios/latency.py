@@ -20,7 +20,7 @@ from bench_matrix.measure.interference import Limits, Sampler
 from bench_matrix.measure.metrics import evaluate, non_finite_reason
 from bench_matrix.measure.schedule import LATENCY, Window
 from bench_matrix.measure.size import artifact_size
-from bench_matrix.measure.timing import LoopSettings, latency_window, time_calls
+from bench_matrix.measure.timing import WINDOW_WARMUP, LoopSettings, latency_window, time_calls
 from bench_matrix.phases import phase
 from bench_matrix.scenarios.base import Loaded, Outcome
 from bench_matrix.scenarios.timed import E2E, THROUGHPUT
@@ -29,6 +29,7 @@ from bench_matrix.tensors import bind, resize, take
 LATENCY_INPUTS = 16
 LIMITS = Limits()  # a window with interference above these is dropped and taken again in a later round
 SHARE = {THROUGHPUT: 0.5}  # of settings.window_s: throughput's figures need fewer calls than the p50's
+WARMUP = {THROUGHPUT: 1}  # calls before a window: one batch warms up as the latency window's 2 calls do
 
 
 class NonFiniteOutputs(Exception):
@@ -50,7 +51,8 @@ class Timer:
         """Time one window of `kind` now (throughput: half as long), with the interference during it."""
         call, inputs, samples = self.calls[kind]
         sampler = Sampler()
-        durations_ns = latency_window(call, inputs, seconds * SHARE.get(kind, 1.0), sampler)
+        durations_ns = latency_window(call, inputs, seconds * SHARE.get(kind, 1.0), sampler,
+                                      warmup=WARMUP.get(kind, WINDOW_WARMUP))
         interference = sampler.stop()
         return Window(kind, durations_ns / 1e6, samples, interference.problem(LIMITS), interference.as_dict())
 

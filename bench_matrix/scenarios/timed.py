@@ -5,14 +5,16 @@ windows: pooled percentiles, intervals from the rounds, the paired speed-up, and
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Mapping
 from dataclasses import asdict
 from typing import Any
 
 import numpy as np
 
 from bench_matrix.measure.interference import Limits
-from bench_matrix.measure.rounds import level_width, p50_interval, rate_interval
-from bench_matrix.measure.schedule import LATENCY, RoundsSettings, Timed, Window, paired
+from bench_matrix.measure.rounds import Slot, Spread, level_width, moderated, p50_interval, rate_interval
+from bench_matrix.measure.rounds import log_levels, medians, process_spread
+from bench_matrix.measure.schedule import LATENCY, RoundsSettings, Timed, Window, paired, rates
 from bench_matrix.measure.stats import latency_summary, pack_samples
 from bench_matrix.scenarios.base import Outcome
 
@@ -21,46 +23,57 @@ SERIES = {LATENCY: "latency_ms", E2E: "latency_ms_e2e"}  # latency kinds -> thei
 SAMPLED = {LATENCY: "latency_ms", E2E: "latency_ms_e2e", THROUGHPUT: "batch_ms"}  # kind -> stored raw series
 
 
-def figures(timed: Timed, baseline: Timed | None, settings: RoundsSettings, limits: Limits) -> Outcome:
+def figures(timed: Timed, baseline: Timed | None, settings: RoundsSettings, limits: Limits,
+            spreads: Mapping[str, Spread | None]) -> Outcome:
     """The cell's timed record fields and raw series from its rounds (`baseline`: the baseline cell's, for
-    the paired speed-up; None for the baseline itself or without one)."""
+    the paired speed-up; None for the baseline itself or without one; `spreads`: the model's pooled process
+    spread by kind)."""
     series = {kind: found for kind in SAMPLED if (found := timed.series(kind))}
-    fields: dict[str, Any] = {name: _latency(series[kind]) for kind, name in SERIES.items() if kind in series}
-    fields.update(_throughput(timed.windows(THROUGHPUT)))
-    ratio = paired(baseline, timed) if baseline is not None and baseline is not timed else None
+    fields: dict[str, Any] = {name: _latency(series[kind], spreads.get(kind))
+                              for kind, name in SERIES.items() if kind in series}
+    fields.update(_throughput(timed.windows(THROUGHPUT), spreads.get(THROUGHPUT)))
+    model = spreads.get(LATENCY)
+    ratio = paired(baseline, timed, model) if baseline is not None and baseline is not timed else None
     if ratio is not None:
         fields["speedup"] = _rounded(ratio.as_dict())
-    p50 = p50_interval(series.get(LATENCY, {}))
+    p50 = p50_interval(series.get(LATENCY, {}), model)
     widths = [w for w in (p50 and level_width(p50), ratio and ratio.half_width) if w is not None]
-    fields["rounds"] = {"rounds": len(series.get(LATENCY, {})), "stop": timed.stop, "target": settings.target,
-                        "reached": round(max(widths), 6) if widths else None, "window_s": settings.window_s}
+    fields["rounds"] = {"rounds": timed.rounds(), "stop": timed.stop, "target": settings.target,
+                        "reached": round(max(widths), 6) if widths else None, "window_s": settings.window_s,
+                        "processes": settings.processes, **_spreads(series.get(LATENCY, {}), model)}
     fields["interference"] = _interference(timed, settings, limits, widths)
     samples = {SAMPLED[kind]: pack_samples(np.concatenate(list(found.values())) * 1e6)
                for kind, found in series.items()}
     return Outcome(fields, samples)
 
 
-def _latency(series: dict[int, np.ndarray]) -> dict[str, Any]:
+def _spreads(series: dict[Slot, np.ndarray], model: Spread | None) -> dict[str, float | None]:
+    """How the cell's processes differed (its own spread, moderated by the model's) and the model's pooled
+    spread, relative."""
+    own = moderated(process_spread(log_levels(medians(series))), model)
+    return {"process_spread": round(own.relative, 6) if own else None,
+            "model_spread": round(model.relative, 6) if model else None}
+
+
+def _latency(series: dict[Slot, np.ndarray], model: Spread | None) -> dict[str, Any]:
     """Percentiles of every kept window pooled; the interval a rerun's p50 falls in, from the spread of the
-    per-round medians."""
+    per-round medians and of the processes."""
     summary = latency_summary(np.concatenate(list(series.values())) * 1e6)
-    interval = p50_interval(series)
+    interval = p50_interval(series, model)
     if interval is not None:
         summary.update(p50_ci=[interval.low, interval.high],
                        p50_ci_rel=(interval.high - interval.low) / summary["p50"])
-    return {**summary, "rounds": len(series)}
+    return {**summary, "rounds": len({r for r, _ in series})}
 
 
-def _throughput(windows: dict[int, Window]) -> dict[str, Any]:
-    """Samples per second over the throughput windows, with the interval of the per-round rates."""
+def _throughput(windows: dict[Slot, Window], model: Spread | None) -> dict[str, Any]:
+    """Samples per second over the throughput windows, with the interval of the per-window rates."""
     if not windows:
         return {}
     batches = sum(len(w.durations_ms) for w in windows.values())
     seconds = sum(float(w.durations_ms.sum()) for w in windows.values()) / 1e3
     samples = sum(w.samples * len(w.durations_ms) for w in windows.values())
-    rates = {r: w.samples * len(w.durations_ms) / (float(w.durations_ms.sum()) / 1e3)
-             for r, w in windows.items()}
-    interval = rate_interval(rates, samples, seconds)
+    interval = rate_interval(rates(windows), samples, seconds, model)
     found: dict[str, Any] = {"throughput_sps": samples / seconds, "throughput_batches": batches}
     if interval is not None:
         found["throughput_ci"] = [interval.low, interval.high]
@@ -89,14 +102,15 @@ def _interference(timed: Timed, settings: RoundsSettings, limits: Limits,
 
 
 def _wide(timed: Timed, settings: RoundsSettings, widths: list[float]) -> str | None:
-    """Why the latency figures are marked when their intervals stayed wider than the target."""
+    """Why the latency figures are marked when their intervals stayed wider than the target (a cell that left
+    the rounds narrow is not: its final width pools the model's process spread over every cell's rounds)."""
     reached = max(widths) if widths else None
-    if reached is not None and reached <= settings.target:
+    if timed.stop == "width" or (reached is not None and reached <= settings.target):
         return None
     width = f"±{reached:.1%}" if reached is not None else "no interval"
     ended = {"budget": "the time budget was spent", "rounds": "the most rounds were run"}.get(timed.stop,
                                                                                               timed.stop)
-    return (f"known to {width} after {len(timed.series(LATENCY))} rounds (target ±{settings.target:.0%}; "
+    return (f"known to {width} after {timed.rounds()} rounds (target ±{settings.target:.0%}; "
             f"{ended})")
 
 
