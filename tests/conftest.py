@@ -22,9 +22,10 @@ sys.path.insert(0, str(TESTS))
 import tiny_models  # noqa: E402
 
 TINY_X = tiny_models.images(16, 2)  # the inputs the `reference` outputs belong to
-# short windows and budgets: tests that judge timing set their own settings
+# short windows and budgets, one process a cell: tests that judge timing, or a cell's processes, set their own
 FAST_SETTINGS = ("settings: {window_s: 0.01, min_rounds: 2, timing_budget_s: 0.05, warmup_iterations: 2, "
-                 "warmup_s: 0.0, batch_size: 8, timeout_s: 120}\n")
+                 "warmup_s: 0.0, batch_size: 8, timeout_s: 120, processes: 1}\n")
+TWO_PROCESSES = ("processes: 1", "processes: 2")  # FAST_SETTINGS.replace(*TWO_PROCESSES): the default's 2
 GPU_NOT_RUN = pytest.StashKey[str]()  # the line saying which gpu-marked tests were deselected, and why
 
 

@@ -15,7 +15,7 @@ import pytest
 
 from bench_matrix.cell import Cell
 from bench_matrix.store import ResultStore
-from conftest import TESTS, cli, install_slow_plugin, matrix_text, onnx_matrix_text, popen_cli
+from conftest import TESTS, TWO_PROCESSES, cli, install_slow_plugin, matrix_text, onnx_matrix_text, popen_cli
 from polling import wait_for
 
 pytestmark = pytest.mark.slow
@@ -131,8 +131,8 @@ def _workers_of(workspace: Path) -> list[int]:
 # four ONNX models of one cell each (each model is measured on its own, in rounds) through
 # tests/plugin_slow.py with no delay, its gate holding every session after the first:
 # the run is certainly in its second cell, its measuring child waiting, when it is interrupted
-INTERRUPTIBLE = onnx_matrix_text(["tiny", "twin", "third", "fourth"], ["fp32"]).replace("[onnxruntime]",
-                                                                                     "[slow_ort]")
+INTERRUPTIBLE = onnx_matrix_text(["tiny", "twin", "third", "fourth"], ["fp32"]).replace(
+    "[onnxruntime]", "[slow_ort]").replace(*TWO_PROCESSES)  # a cell's 2 processes pass the gate together
 
 
 def _start_gated_run(project: Path) -> tuple[subprocess.Popen, dict[str, str]]:
@@ -216,7 +216,7 @@ def test_user_errors_exit_2_without_traceback(tiny_project):
 
 def test_a_models_cells_are_timed_in_rounds_with_a_paired_speedup(onnx_project):
     (onnx_project / "m.yaml").write_text(onnx_matrix_text(["tiny"], ["fp32", "fp16"]).replace(
-        "min_rounds: 2, timing_budget_s: 0.05", "min_rounds: 3, timing_budget_s: 1"))
+        "min_rounds: 2, timing_budget_s: 0.05", "min_rounds: 3, timing_budget_s: 1").replace(*TWO_PROCESSES))
     run = cli(onnx_project, "run", "m.yaml")
     assert run.returncode == 0, run.stdout + run.stderr
     found = records(onnx_project)
@@ -231,7 +231,7 @@ def test_a_models_cells_are_timed_in_rounds_with_a_paired_speedup(onnx_project):
     ratio = half["speedup"]
     assert ratio["rounds"] >= 3 and ratio["ci"][0] <= ratio["value"] <= ratio["ci"][1]
     assert half["rounds"]["stop"] in ("width", "budget") and half["timing_window"]["rounds"] >= 3
-    assert half["rounds"]["processes"] == 2 and half["rounds"]["model_spread"] is not None  # the default
+    assert half["rounds"]["processes"] == 2 and half["rounds"]["model_spread"] is not None
     logs = onnx_project / "ws" / "logs"
     assert (logs / "tiny__onnxruntime__none__fp16__cpu.log").exists()
     assert (logs / "tiny__onnxruntime__none__fp16__cpu.2.log").exists()  # each process logs apart

@@ -11,7 +11,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from conftest import cli, install_slow_plugin, onnx_matrix_text, popen_cli
+from conftest import TWO_PROCESSES, cli, install_slow_plugin, onnx_matrix_text, popen_cli
 from polling import wait_for
 from ssh_server import (Server, device_at, device_python, free_port, jetson_path, processes, start_server,
                         why_no_sshd)
@@ -19,7 +19,8 @@ from ssh_server import (Server, device_at, device_python, free_port, jetson_path
 NO_SSHD = why_no_sshd()
 pytestmark = pytest.mark.skipif(NO_SSHD is not None, reason=NO_SSHD or "")
 # two models of one slow_ort cell each: the first passes the device's gate, the second waits there
-GATED = onnx_matrix_text(["tiny", "twin"], ["fp32"]).replace("[onnxruntime]", "[slow_ort]")
+GATED = onnx_matrix_text(["tiny", "twin"], ["fp32"]).replace("[onnxruntime]", "[slow_ort]").replace(
+    *TWO_PROCESSES)  # a cell's 2 processes pass the gate together
 
 
 @pytest.fixture(scope="module")
