@@ -72,7 +72,7 @@ def test_tensorflow_pruning_clustering_and_qat_in_tflite(tmp_path: Path) -> None
         "target: [cpu]}\n"
         "include:\n  - {backend: onnxruntime, strategy: qat, precision: int8, target: cpu}\n"
         "settings: {window_s: 0.01, min_rounds: 2, timing_budget_s: 0.05, warmup_iterations: 2, "
-        "warmup_s: 0.0, batch_size: 8, timeout_s: 300}\n")
+        "warmup_s: 0.0, batch_size: 8, timeout_s: 300, processes: 1}\n")
     run = cli(project, "run", "m.yaml", timeout=900)
     assert run.returncode == 0 and "0 failed" in run.stdout, run.stdout + run.stderr
     epoch = r"\] tiny · tflite prune fp32 · fine-tune · epoch 2/2 · loss [0-9.e+-]+ · about 0 s left"

@@ -24,7 +24,8 @@ backend_options: {npu_rt: {hint: latency, streams: 2}}
 """
 ENTRY_POINTS = ("npu_rt = plugin_npu:NpuBackend\nbad_opts = plugin_npu:BadOptionsBackend\n"
                 "fake_gpu = plugin_npu:FakeGpuBackend\ngone = no_such_module_of_bench_matrix:Backend\n")
-FAST = "settings: {window_s: 0.01, min_rounds: 2, timing_budget_s: 0.05, warmup_s: 0.0, batch_size: 4}\n"
+FAST = ("settings: {window_s: 0.01, min_rounds: 2, timing_budget_s: 0.05, warmup_s: 0.0, batch_size: 4, "
+        "processes: 1}\n")
 
 
 def install(root: Path) -> Path:

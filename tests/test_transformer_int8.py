@@ -85,7 +85,7 @@ def _project(root: Path) -> Path:
         "axes: {backend: [onnxruntime], strategy: [none, ptq_dynamic, ptq_static], precision: [fp32, int8],"
         " target: [cpu]}\n"
         "settings: {window_s: 0.01, min_rounds: 2, timing_budget_s: 0.05, warmup_iterations: 2,"
-        " warmup_s: 0.0, batch_size: 8, timeout_s: 300}\n")
+        " warmup_s: 0.0, batch_size: 8, timeout_s: 300, processes: 1}\n")
     return root
 
 
