@@ -314,3 +314,25 @@ def test_the_environment_shows_the_cpu_frequency_policy_in_one_line_and_warns_wh
     assert dict(found.fields)["CPU frequency"] == ("driver acpi-cpufreq, governor performance, boost 1",
                                                    "not exposed by this machine")
     assert any(w.startswith("CPU frequency differs") for w in found.warnings)
+
+
+@pytest.mark.parametrize("facts, said", [
+    ([{"rounds": 9, "stop": "budget", "window_s": 0.1, "processes": 2, "model_spread": 0.0123}],
+     "Timed in 9 interleaved rounds of 0.1 s windows, each cell in 2 processes (they differed by 1.2%, in "
+     "the intervals), each round in a fresh random order; 1 stopped by the time budget;"),
+    ([{"rounds": 5, "stop": "width", "window_s": 0.1, "processes": 2, "model_spread": 0.0},
+      {"rounds": 8, "stop": "width", "window_s": 0.1, "processes": 2, "model_spread": 0.0}],
+     "Timed in 5–8 interleaved rounds of 0.1 s windows, each cell in 2 processes (they differed by no more "
+     "than their windows' own noise), each round in a fresh random order; p50"),
+    ([{"rounds": 9, "stop": "budget", "window_s": 0.2}],  # records from before the processes
+     "Timed in 9 interleaved rounds of 0.2 s windows, per cell, each round"),
+])
+def test_the_caption_says_how_the_cells_were_timed(facts: list[dict], said: str) -> None:
+    from types import SimpleNamespace
+
+    from bench_matrix.measurement import Measurement
+    from bench_matrix.report.text import timing_line
+
+    rows = [SimpleNamespace(record=SimpleNamespace(metrics=Measurement.from_json({"rounds": f})))
+            for f in facts]
+    assert said in timing_line(SimpleNamespace(rows=rows))

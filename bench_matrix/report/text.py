@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
+from bench_matrix.measurement import RoundsFacts
 from bench_matrix.report.columns import DASH, DELTA_NAMES, fixed, percent, sig, times
 from bench_matrix.report.summary import ModelSummary, Report, metric, number, p50
 from bench_matrix.store import CellRecord
@@ -58,12 +59,19 @@ def timing_line(model: ModelSummary) -> str:
     span = f"{counts[0]}" if counts[0] == counts[-1] else f"{counts[0]}–{counts[-1]}"
     stopped = sum(f.stop == "budget" for f in facts)
     budget = f"; {stopped} stopped by the time budget" if stopped else ""
+    return (f"Timed in {span} interleaved rounds of {length} windows, {_processes(facts)}, each round in a "
+            f"fresh random order{budget}; p50 intervals from the per-round medians.")
+
+
+def _processes(facts: list[RoundsFacts]) -> str:
+    """How many session processes timed each cell and how far they differed; "per cell" for one."""
     processes = max((f.processes or 1) for f in facts)
     spread = max((f.model_spread for f in facts if f.model_spread is not None), default=None)
-    where = (f"each cell in {processes} processes (they differed by {spread:.1%}, in the intervals)"
-             if processes > 1 and spread is not None else "per cell")
-    return (f"Timed in {span} interleaved rounds of {length} windows, {where}, each round in a fresh random "
-            f"order{budget}; p50 intervals from the per-round medians.")
+    if processes < 2 or spread is None:
+        return "per cell"
+    differed = (f"they differed by {spread:.1%}, in the intervals" if spread >= 0.0005
+                else "they differed by no more than their windows' own noise")
+    return f"each cell in {processes} processes ({differed})"
 
 
 def baseline_note(model: ModelSummary) -> str | None:
