@@ -263,7 +263,7 @@ def test_figures_record_the_processes_and_mark_only_cells_that_did_not_leave_nar
 
     base, left, spent = timed(10.0, "budget"), timed(5.0, "width"), timed(5.0, "budget")
     model = spread([base, left, spent])
-    settings = RoundsSettings(target=0.001, processes=2, window_s=0.1)
+    settings = RoundsSettings(target=0.001, window_s=0.1)
     record = figures(left, base, settings, Limits(), {LATENCY: model}).fields
     assert record["rounds"]["processes"] == 2 and record["rounds"]["rounds"] == 6
     assert record["rounds"]["model_spread"] == pytest.approx(model.relative, abs=1e-6)

@@ -29,7 +29,7 @@ def rounds_settings(job: RoundsJob) -> RoundsSettings:
     settings = job.cells[0].settings
     return RoundsSettings(min_rounds=settings.min_rounds, budget_s=settings.timing_budget_s * len(job.cells),
                           target=settings.ci_target, disturbed_share=DISTURBED_SHARE,
-                          window_s=settings.window_s, processes=settings.processes)
+                          window_s=settings.window_s)
 
 
 def measure_in_rounds(job: RoundsJob, workdir: Path, logs: Path, on_phase: Callable[[str], None]

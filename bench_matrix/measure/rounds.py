@@ -65,7 +65,8 @@ def process_spread(levels: Mapping[Slot, float]) -> Spread | None:
     """The spread of a cell's processes from its log levels by slot, as a random effect: the variance of
     each process's mean offset from the rounds' means (the drift a round shared cancels) less what the
     windows' own noise puts into it; None with fewer than 2 processes or 2 rounds."""
-    offsets, means = _offsets(levels), _round_means(levels)
+    means = _round_means(levels)
+    offsets = _offsets(levels, means)
     rounds = len(means)
     residual_dof = len(levels) - rounds - len(offsets) + 1
     if len(offsets) < 2 or rounds < 2 or residual_dof < 1:
@@ -172,9 +173,9 @@ def _round_means(levels: Mapping[Slot, float]) -> dict[int, float]:
     return {r: float(np.mean(ys)) for r, ys in by_round.items()}
 
 
-def _offsets(levels: Mapping[Slot, float]) -> dict[int, float]:
-    """Each process's mean distance from the means of the rounds it was timed in."""
-    means, by_process = _round_means(levels), {}
+def _offsets(levels: Mapping[Slot, float], means: Mapping[int, float]) -> dict[int, float]:
+    """Each process's mean distance from the means (`means`, by round) of the rounds it was timed in."""
+    by_process: dict[int, list[float]] = {}
     for (r, j), y in levels.items():
         by_process.setdefault(j, []).append(y - means[r])
     return {j: float(np.mean(d)) for j, d in by_process.items()}

@@ -51,7 +51,7 @@ class Session(Protocol):
 class RoundsSettings:
     """When rounds stop: every interval within ±`target` after `min_rounds`, or `budget_s` spent (or
     `max_rounds`); a cell whose windows were disturbed more than `disturbed_share` of the time is marked;
-    each window's length and each cell's number of session processes (the executor's to start)."""
+    each window's length (the sessions time it)."""
 
     min_rounds: int = 5
     max_rounds: int = 200
@@ -59,7 +59,6 @@ class RoundsSettings:
     target: float = 0.02
     disturbed_share: float = 0.25
     window_s: float = 0.2
-    processes: int = 1
 
 
 Cell = Sequence[Session]  # a cell's session processes, each timed once per round

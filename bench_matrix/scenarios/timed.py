@@ -40,7 +40,7 @@ def figures(timed: Timed, baseline: Timed | None, settings: RoundsSettings, limi
     widths = [w for w in (p50 and level_width(p50), ratio and ratio.half_width) if w is not None]
     fields["rounds"] = {"rounds": timed.rounds(), "stop": timed.stop, "target": settings.target,
                         "reached": round(max(widths), 6) if widths else None, "window_s": settings.window_s,
-                        "processes": settings.processes, **_spreads(series.get(LATENCY, {}), model)}
+                        "processes": len({j for _, j in timed.windows(LATENCY)}), **_spreads(series.get(LATENCY, {}), model)}
     fields["interference"] = _interference(timed, settings, limits, widths)
     samples = {SAMPLED[kind]: pack_samples(np.concatenate(list(found.values())) * 1e6)
                for kind, found in series.items()}
