@@ -21,7 +21,7 @@ def test_every_round_visits_every_cell_once_in_a_fresh_random_order():
     sessions = cells(machine, names, noise=0.3, kinds=(LATENCY, "throughput"))
     timed = {name: Timed() for name in names}
     rounds = rounds_on(machine, max_rounds=10, target=NEVER_NARROW, budget_s=1e9)
-    assert rounds.run(sessions, timed, "a", budget_s=1e9) == "rounds"
+    assert rounds.run(sessions, timed, None, budget_s=1e9) == "rounds"
     assert len(rounds.orders) == 10 and rounds.number == 10
     assert all(sorted(order) == names for order in rounds.orders)  # each a permutation of the cells
     assert len(set(rounds.orders)) >= 5  # fresh orders (10 draws out of 120: ~10 distinct), not one reused
@@ -45,6 +45,36 @@ def test_every_round_times_every_process_of_every_cell_once():
     for name in sessions:
         assert set(timed[name].kept[LATENCY]) == {(r, j) for r in range(6) for j in (0, 1)}
         assert [session.windows for session in sessions[name]] == [6, 6] and timed[name].rounds() == 6
+
+
+def test_the_baseline_is_visited_the_square_root_of_its_cells_times_a_round_its_repeats_latency_only():
+    machine = Machine(seed=3)
+    names = ["base", *(f"c{i}" for i in range(9))]
+    sessions = cells(machine, names, processes=2, noise=0.3, calls=4, kinds=(LATENCY, "throughput"))
+    timed = {name: Timed() for name in names}
+    rounds = rounds_on(machine, max_rounds=4, target=NEVER_NARROW)
+    assert rounds.visits(sessions, "base") == {"base": 3, **{name: 1 for name in names[1:]}}  # √9
+    assert rounds.run(sessions, timed, "base", budget_s=1e9) == "rounds"
+    assert all(sorted(order) == sorted(["base"] * 6 + [c for c in names[1:] for _ in "12"])
+               for order in rounds.orders)
+    assert len({order.index("base") for order in rounds.orders}) > 1  # its visits shuffled with the rest
+    logged = [(cell, kind) for cell, kind, _ in machine.log]
+    assert logged.count(("base", LATENCY)) == 24 and logged.count(("base", "throughput")) == 8
+    assert logged.count(("c0", LATENCY)) == logged.count(("c0", "throughput")) == 8
+    assert set(timed["base"].kept[LATENCY]) == {(r, j) for r in range(4) for j in (0, 1)}
+    assert {len(w.durations_ms) for w in timed["base"].kept[LATENCY].values()} == {12}  # 3 visits' calls
+    assert timed["base"].count(LATENCY) == (24, 0) and timed["c0"].count("throughput") == (8, 0)
+
+
+def test_a_cell_paired_against_another_than_the_baseline_is_its_reference_alone():
+    machine = Machine(seed=1)
+    sessions = cells(machine, ["base", "a", "b", "c", "x@base", "x@new"])
+    rounds = rounds_on(machine, references={"x@new": "x@base"})
+    assert rounds.visits(sessions, "base") == {"base": 2, "a": 1, "b": 1, "c": 1, "x@base": 1, "x@new": 1}
+    fewer = {key: sessions[key] for key in ("base", "a", "x@base", "x@new")}
+    assert rounds.visits(fewer, "base")["base"] == 1  # √2, rounded
+    without = {key: sessions[key] for key in ("a", "b", "c", "x@base")}
+    assert rounds.visits(without, "base") == dict.fromkeys(without, 1)  # the baseline gone: nothing to repeat
 
 
 def test_a_lost_process_fails_its_cell_and_its_other_process_is_not_timed_again():

@@ -1,13 +1,15 @@
 """The rounds scheduler (docs/metrics.md §5): the harness owns the clock. A model's loaded sessions (each cell
 in one or more processes) are timed in short windows, round by round, each round visiting every process of
-every cell once in a fresh random order, until every cell's p50 and speed-up intervals are narrow enough
-(each cell leaves them once it is) or the time budget is spent; as many cells are alive at once as fit the
-memory budget, the baseline in every group."""
+every cell once (the baseline's more often) in a fresh random order, until every cell's p50 and speed-up
+intervals are narrow enough (each cell leaves them once it is) or the time budget is spent; as many cells
+are alive at once as fit the memory budget, the baseline in every group."""
 
 from __future__ import annotations
 
+import math
 import random
 import time
+from collections import Counter
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
@@ -73,9 +75,17 @@ class Timed:
     dropped: dict[str, dict[Slot, Window]] = field(default_factory=dict)
     failed: str | None = None
     stop: str = ""  # "width": every interval narrow enough; "budget": time ran out; "rounds": max_rounds
+    counts: Counter[tuple[str, bool]] = field(default_factory=Counter)  # windows by (kind, disturbed)
 
     def add(self, slot: Slot, window: Window) -> None:
-        (self.kept if window.disturbed is None else self.dropped).setdefault(window.kind, {})[slot] = window
+        """Keep `window` (or drop it, disturbed) at `slot`; a second visit of the slot joins its calls."""
+        windows = (self.kept if window.disturbed is None else self.dropped).setdefault(window.kind, {})
+        windows[slot] = _joined(windows[slot], window) if slot in windows else window
+        self.counts[window.kind, window.disturbed is not None] += 1
+
+    def count(self, kind: str) -> tuple[int, int]:
+        """The windows of `kind` timed, and how many of them were disturbed."""
+        return self.counts[kind, False] + self.counts[kind, True], self.counts[kind, True]
 
     def windows(self, kind: str, clean: bool = False, every: bool = False) -> dict[Slot, Window]:
         """The windows a figure is computed from, by slot: the clean ones, or (unless `clean`) every one when
@@ -94,8 +104,14 @@ class Timed:
         return len({r for r, _ in self.windows(kind)})
 
     def disturbed_share(self) -> float:
-        windows = sum(len(v) for v in self.kept.values()) + sum(len(v) for v in self.dropped.values())
-        return sum(len(v) for v in self.dropped.values()) / windows if windows else 0.0
+        windows = sum(self.counts.values())
+        return sum(n for (_, disturbed), n in self.counts.items() if disturbed) / windows if windows else 0.0
+
+
+def _joined(first: Window, second: Window) -> Window:
+    """Two windows of one slot as one: their calls together (the first's reason, if disturbed)."""
+    return Window(first.kind, np.concatenate([first.durations_ms, second.durations_ms]), first.samples,
+                  first.disturbed, first.interference)
 
 
 def spread(cells: Iterable[Timed], kind: str = LATENCY, rate: bool = False) -> Spread | None:
@@ -152,7 +168,7 @@ class Rounds:
         self.settings, self.rng, self.clock = settings, rng or random.Random(), clock
         self.hold, self.on_round, self.references = hold, on_round, dict(references or {})
         self.number = 0  # rounds run so far, over every group (the baseline's rounds are numbered so)
-        self.orders: list[tuple[str, ...]] = []  # each round's cells in the order timed (one per process)
+        self.orders: list[tuple[str, ...]] = []  # each round's cells in the order timed (one per visit)
 
     def run(self, sessions: Mapping[str, Cell], timed: dict[str, Timed], baseline: str | None,
             budget_s: float) -> str:
@@ -162,7 +178,7 @@ class Rounds:
             live = dict(sessions)
             start, count, settled = self.clock(), 0, False
             while live:
-                self._round(live, timed)
+                self._round(live, timed, baseline)
                 count += 1
                 settled = self._settle(live, timed, baseline) or settled
                 if not live:
@@ -191,17 +207,32 @@ class Rounds:
             del live[key]
         return bool(leaving)
 
-    def _round(self, live: dict[str, Cell], timed: dict[str, Timed]) -> None:
-        units = [(key, process) for key in sorted(live) for process in range(len(live[key]))]
+    def visits(self, live: Mapping[str, Cell], baseline: str | None) -> dict[str, int]:
+        """How often a round visits each process of each cell: once, and a cell that n others are paired
+        against (the baseline) √n times, rounded: each of their speed-ups shares its level (Dunnett's
+        allocation: the variance of n comparisons with one control is least at √n times its samples)."""
+        against = Counter(reference for key in live
+                          if (reference := self.references.get(key, baseline)) in live and reference != key)
+        return {key: max(1, round(math.sqrt(against[key]))) for key in live}
+
+    def _round(self, live: dict[str, Cell], timed: dict[str, Timed], baseline: str | None) -> None:
+        """One round: every visit in a fresh random order; a process's first visit times each of its kinds,
+        a repeat its latency only (what the speed-ups pair)."""
+        visits = self.visits(live, baseline)
+        units = [(key, process) for key in sorted(live) for process in range(len(live[key]))
+                 for _ in range(visits[key])]
         order = self.rng.sample(units, len(units))
         self.orders.append(tuple(key for key, _ in order))
         self.on_round(self.number)
+        visited: set[tuple[str, int]] = set()
         for key, process in order:
             if key not in live:  # another of its processes was lost this round
                 continue
             try:
                 session = live[key][process]
-                for kind in session.kinds:
+                kinds = session.kinds if (key, process) not in visited else (LATENCY,)
+                visited.add((key, process))
+                for kind in (kind for kind in kinds if kind in session.kinds):
                     timed[key].add((self.number, process), session.window(kind))
             except SessionLost as lost:
                 timed[key].failed = str(lost)

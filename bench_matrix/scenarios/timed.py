@@ -40,7 +40,8 @@ def figures(timed: Timed, baseline: Timed | None, settings: RoundsSettings, limi
     widths = [w for w in (p50 and level_width(p50), ratio and ratio.half_width) if w is not None]
     fields["rounds"] = {"rounds": timed.rounds(), "stop": timed.stop, "target": settings.target,
                         "reached": round(max(widths), 6) if widths else None, "window_s": settings.window_s,
-                        "processes": len({j for _, j in timed.windows(LATENCY)}), **_spreads(series.get(LATENCY, {}), model)}
+                        "processes": len({j for _, j in timed.windows(LATENCY)}),
+                        **_spreads(series.get(LATENCY, {}), model)}
     fields["interference"] = _interference(timed, settings, limits, widths)
     samples = {SAMPLED[kind]: pack_samples(np.concatenate(list(found.values())) * 1e6)
                for kind, found in series.items()}
@@ -87,14 +88,13 @@ def _interference(timed: Timed, settings: RoundsSettings, limits: Limits,
     target)."""
     phases = {}
     for kind in (*SERIES, THROUGHPUT):
-        kept, dropped = timed.kept.get(kind, {}), timed.dropped.get(kind, {})
-        if not kept and not dropped:
+        total, dropped = timed.count(kind)
+        if not total:
             continue
-        total = len(kept) + len(dropped)
-        why = Counter(w.disturbed for w in dropped.values()).most_common(1)
-        disturbed = (f"{len(dropped)} of {total} windows disturbed (limit {settings.disturbed_share:.0%}): "
-                     f"{why[0][0]}" if len(dropped) > settings.disturbed_share * total else None)
-        phases[kind] = {"windows": total, "dropped": len(dropped), "disturbed": disturbed,
+        why = Counter(w.disturbed for w in timed.dropped.get(kind, {}).values()).most_common(1)
+        disturbed = (f"{dropped} of {total} windows disturbed (limit {settings.disturbed_share:.0%}): "
+                     f"{why[0][0]}" if dropped > settings.disturbed_share * total else None)
+        phases[kind] = {"windows": total, "dropped": dropped, "disturbed": disturbed,
                         "wide": _wide(timed, settings, widths) if kind == LATENCY else None}
     reasons = [f"{kind}: {phase['disturbed']}" for kind, phase in phases.items() if phase["disturbed"]]
     return {"flagged": bool(reasons), "reason": " | ".join(reasons) or None, "limits": asdict(limits),
