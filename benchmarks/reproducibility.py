@@ -2,9 +2,11 @@
 two runs, and whether the first run's interval covered the second's p50 (docs/metrics.md §5).
 
 Per cell: both p50s, both speed-ups (paired by round against the baseline) and their difference, whether run
-2's p50 lies inside run 1's 95 % interval, and whether either run marked it (~: disturbed or too wide). The
-last line: `speed-up difference median X %, max Y %; p50 CI coverage Z %; flagged N of M; timing T s` (T: the
-seconds both runs spent in rounds). With --hog, a CPU-bound process runs on the other core during run 2.
+2's p50 lies inside run 1's 95 % interval, and whether either run marked it (~: disturbed or too wide). Then
+how the machine's speed moved between the runs (the median p50 ratio), which no interval from one run can
+see, and how many intervals hold run 2's p50 with that move taken out. The last line: `speed-up difference
+median X %, max Y %; p50 CI coverage Z %; flagged N of M; timing T s` (T: the seconds both runs spent in
+rounds). With --hog, a CPU-bound process runs on the other core during run 2.
 Targets on a quiet 2-core VM: median <= 2 %, max <= 5 %, coverage >= 90 %, at most 10 % of cells marked;
 under --hog, every cell within 5 % of its quiet speed-up, or marked.
 
@@ -62,9 +64,22 @@ def marked(record: CellRecord) -> bool:
     return bool(disturbed_phases(record) or wide_phases(record))
 
 
-def covered(first: CellRecord, second: CellRecord) -> bool:
+def covered(first: CellRecord, second: CellRecord, shift: float = 1.0) -> bool:
+    """Whether run 2's p50 (÷ `shift`, the machine's move between the runs) lies in run 1's interval."""
     interval = first.metrics.latency.p50_ci
-    return interval is not None and interval[0] <= second.metrics.latency.p50 <= interval[1]
+    return interval is not None and interval[0] <= second.metrics.latency.p50 / shift <= interval[1]
+
+
+def machine_line(pairs: list[tuple[CellRecord, CellRecord]]) -> str:
+    """How the machine's speed moved between the runs (the median of the cells' p50 ratios, run 2 ÷ run 1),
+    and how many of run 1's intervals hold run 2's p50 with that move taken out (what one run can know)."""
+    ratios = [two.metrics.latency.p50 / one.metrics.latency.p50 for one, two in pairs]
+    shift = statistics.median(ratios) if ratios else 1.0
+    same = sum((r > 1) == (shift > 1) for r in ratios if r != 1)
+    held = sum(covered(one, two, shift) for one, two in pairs)
+    return (f"the machine between the runs: p50s moved by a median of {shift - 1:+.1%} ({same} of "
+            f"{len(ratios)} cells the same way); with that move taken out, run 1's intervals hold {held} of "
+            f"{len(pairs)}")
 
 
 def rounds_s(records: list[CellRecord]) -> float:
@@ -77,10 +92,9 @@ def table(first: list[CellRecord], second: list[CellRecord]) -> list[str]:
     """One line per cell of both runs, then the summary line."""
     again = {r.cell.key: r for r in second}
     lines, moves, inside, flagged = [], [], [], 0
-    for one in sorted(first, key=lambda r: r.cell.key):
-        two = again.get(one.cell.key)
-        if two is None:
-            continue
+    pairs = [(one, again[one.cell.key]) for one in sorted(first, key=lambda r: r.cell.key)
+             if one.cell.key in again]
+    for one, two in pairs:
         s1, s2 = speedup(one), speedup(two)
         move = abs(s2 / s1 - 1) if s1 and s2 else None
         moves += [move] if move is not None else []
@@ -91,6 +105,7 @@ def table(first: list[CellRecord], second: list[CellRecord]) -> list[str]:
                      f"  speed-up {_x(s1)} {_x(s2)}  diff {'—' if move is None else f'{move:6.1%}'}"
                      f"  {'in' if inside[-1] else 'OUT'}{'  ~' if marked(one) or marked(two) else ''}")
     median = statistics.median(moves) if moves else float("nan")
+    lines.append(machine_line(pairs))
     lines.append(f"speed-up difference median {median:.1%}, max {max(moves, default=float('nan')):.1%}; "
                  f"p50 CI coverage {sum(inside) / max(len(inside), 1):.0%}; "
                  f"flagged {flagged} of {len(inside)}; timing {rounds_s(first) + rounds_s(second):.0f} s")
