@@ -230,9 +230,9 @@ class Rounds:
                 continue
             try:
                 session = live[key][process]
-                kinds = session.kinds if (key, process) not in visited else (LATENCY,)
+                repeat = (key, process) in visited
                 visited.add((key, process))
-                for kind in (kind for kind in kinds if kind in session.kinds):
+                for kind in (kind for kind in session.kinds if not repeat or kind == LATENCY):
                     timed[key].add((self.number, process), session.window(kind))
             except SessionLost as lost:
                 timed[key].failed = str(lost)
