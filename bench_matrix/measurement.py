@@ -100,7 +100,8 @@ class Speedup(Figures):
 @dataclass(frozen=True)
 class RoundsFacts(Figures):
     """How the cell's rounds went: kept latency rounds, why they stopped, the target, the width reached, the
-    window length, its session processes and how they differed (its own spread, and the model's pooled)."""
+    window length, its session processes, its latency windows per process and round (the baseline: more than
+    one) and how the processes differed (its own spread, and the model's pooled)."""
 
     OPEN: ClassVar[bool] = True
 
@@ -110,6 +111,7 @@ class RoundsFacts(Figures):
     reached: float | None = None
     window_s: float | None = None
     processes: int | None = None
+    visits: float | None = None
     process_spread: float | None = None
     model_spread: float | None = None
 

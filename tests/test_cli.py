@@ -232,6 +232,7 @@ def test_a_models_cells_are_timed_in_rounds_with_a_paired_speedup(onnx_project):
     assert ratio["rounds"] >= 3 and ratio["ci"][0] <= ratio["value"] <= ratio["ci"][1]
     assert half["rounds"]["stop"] in ("width", "budget") and half["timing_window"]["rounds"] >= 3
     assert half["rounds"]["processes"] == 2 and half["rounds"]["model_spread"] is not None
+    assert half["rounds"]["visits"] == base["rounds"]["visits"] == 1.0  # one cell paired: the baseline √1 times
     logs = onnx_project / "ws" / "logs"
     assert (logs / "tiny__onnxruntime__none__fp16__cpu.log").exists()
     assert (logs / "tiny__onnxruntime__none__fp16__cpu.2.log").exists()  # each process logs apart

@@ -324,6 +324,9 @@ def test_the_environment_shows_the_cpu_frequency_policy_in_one_line_and_warns_wh
       {"rounds": 8, "stop": "width", "window_s": 0.1, "processes": 2, "model_spread": 0.0}],
      "Timed in 5–8 interleaved rounds of 0.1 s windows, each cell in 2 processes (they differed by no more "
      "than their windows' own noise), each round in a fresh random order; p50"),
+    ([{"rounds": 8, "stop": "budget", "window_s": 0.1, "processes": 2, "visits": 2.625, "model_spread": 0.0},
+      {"rounds": 8, "stop": "budget", "window_s": 0.1, "processes": 2, "visits": 1.0, "model_spread": 0.0}],
+     "noise), each round in a fresh random order (the baseline 2.6 times a round); 2 stopped by the time"),
     ([{"rounds": 9, "stop": "budget", "window_s": 0.2}],  # records from before the processes
      "Timed in 9 interleaved rounds of 0.2 s windows, per cell, each round"),
 ])

@@ -64,6 +64,7 @@ def test_the_baseline_is_visited_the_square_root_of_its_cells_times_a_round_its_
     assert set(timed["base"].kept[LATENCY]) == {(r, j) for r in range(4) for j in (0, 1)}
     assert {len(w.durations_ms) for w in timed["base"].kept[LATENCY].values()} == {12}  # 3 visits' calls
     assert timed["base"].count(LATENCY) == (24, 0) and timed["c0"].count("throughput") == (8, 0)
+    assert timed["base"].visits() == 3.0 and timed["c0"].visits() == timed["c0"].visits("throughput") == 1.0
 
 
 def test_a_cell_paired_against_another_than_the_baseline_is_its_reference_alone():

@@ -87,6 +87,11 @@ class Timed:
         """The windows of `kind` timed, and how many of them were disturbed."""
         return self.counts[kind, False] + self.counts[kind, True], self.counts[kind, True]
 
+    def visits(self, kind: str = LATENCY) -> float:
+        """The windows of `kind` timed per slot, on average (above 1: the baseline's repeat visits)."""
+        slots = {*self.kept.get(kind, {}), *self.dropped.get(kind, {})}
+        return self.count(kind)[0] / len(slots) if slots else 0.0
+
     def windows(self, kind: str, clean: bool = False, every: bool = False) -> dict[Slot, Window]:
         """The windows a figure is computed from, by slot: the clean ones, or (unless `clean`) every one when
         fewer than 2 rounds were clean, or when `every`."""

@@ -59,8 +59,10 @@ def timing_line(model: ModelSummary) -> str:
     span = f"{counts[0]}" if counts[0] == counts[-1] else f"{counts[0]}–{counts[-1]}"
     stopped = sum(f.stop == "budget" for f in facts)
     budget = f"; {stopped} stopped by the time budget" if stopped else ""
+    repeats = max((f.visits or 1.0) for f in facts)
+    baseline = f" (the baseline {repeats:.1f} times a round)" if repeats >= 1.05 else ""
     return (f"Timed in {span} interleaved rounds of {length} windows, {_processes(facts)}, each round in a "
-            f"fresh random order{budget}; p50 intervals from the per-round medians.")
+            f"fresh random order{baseline}{budget}; p50 intervals from the per-round medians.")
 
 
 def _processes(facts: list[RoundsFacts]) -> str:

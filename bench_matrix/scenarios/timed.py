@@ -41,7 +41,7 @@ def figures(timed: Timed, baseline: Timed | None, settings: RoundsSettings, limi
     fields["rounds"] = {"rounds": timed.rounds(), "stop": timed.stop, "target": settings.target,
                         "reached": round(max(widths), 6) if widths else None, "window_s": settings.window_s,
                         "processes": len({j for _, j in timed.windows(LATENCY)}),
-                        **_spreads(series.get(LATENCY, {}), model)}
+                        "visits": round(timed.visits(), 3), **_spreads(series.get(LATENCY, {}), model)}
     fields["interference"] = _interference(timed, settings, limits, widths)
     samples = {SAMPLED[kind]: pack_samples(np.concatenate(list(found.values())) * 1e6)
                for kind, found in series.items()}
