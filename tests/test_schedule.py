@@ -226,7 +226,7 @@ def test_disturbed_windows_are_kept_apart_while_two_clean_rounds_exist():
     assert list(timed.series(LATENCY)) == [(0, 0), (2, 0), (3, 0), (5, 0)]
     assert timed.series(LATENCY) == timed.series(LATENCY, clean=True)
     assert p50_interval(timed.series(LATENCY)).value == 12.5  # median of 10, 12, 13, 15: the 40s are left out
-    assert timed.disturbed_share() == pytest.approx(2 / 12)  # 2 of the 12 windows, every kind counted
+    assert timed.count(LATENCY) == (6, 2) and timed.count("throughput") == (6, 0)  # 2 of the 12 windows
 
 
 def test_series_falls_back_to_every_window_when_fewer_than_two_are_clean():
@@ -235,8 +235,8 @@ def test_series_falls_back_to_every_window_when_fewer_than_two_are_clean():
         timed.add((number, 0), window(10.0 + number, None if number == 2 else STEAL))
     assert list(timed.series(LATENCY)) == [(r, 0) for r in range(4)]  # all of them, in round order
     assert list(timed.series(LATENCY, clean=True)) == [(2, 0)]
-    assert timed.disturbed_share() == 0.75
-    assert Timed().series(LATENCY) == {} and Timed().disturbed_share() == 0.0
+    assert timed.count(LATENCY) == (4, 3)
+    assert Timed().series(LATENCY) == {} and Timed().count(LATENCY) == (0, 0)
 
 
 def test_speed_ups_pair_clean_rounds_or_every_round_when_fewer_than_two_are_clean_in_both():
@@ -263,7 +263,7 @@ def test_disturbed_rounds_do_not_count_towards_stopping():
     assert rounds.run(sessions, timed, "base", budget_s=1e9) == "width"
     assert len(rounds.orders) == 7  # x's 5th clean round is round 6
     assert set(timed["x"].dropped[LATENCY]) == {(1, 0), (3, 0)}
-    assert timed["x"].disturbed_share() == pytest.approx(2 / 7)
+    assert timed["x"].count(LATENCY) == (7, 2)
 
     machine = Machine(seed=15)  # pairs need 5 rounds clean in both: base's 0 and 2 are out, x's 1 and 3
     sessions = {"base": [FakeSession(machine, "base", disturbed_at=(0, 2))],

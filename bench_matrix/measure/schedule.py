@@ -108,10 +108,6 @@ class Timed:
         """The rounds whose windows its figures of `kind` pool."""
         return len({r for r, _ in self.windows(kind)})
 
-    def disturbed_share(self) -> float:
-        windows = sum(self.counts.values())
-        return sum(n for (_, disturbed), n in self.counts.items() if disturbed) / windows if windows else 0.0
-
 
 def _joined(first: Window, second: Window) -> Window:
     """Two windows of one slot as one: their calls together (the first's reason, if disturbed)."""
