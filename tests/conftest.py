@@ -40,6 +40,15 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     config.hook.pytest_deselected(items=gpu)
     items[:] = [item for item in items if not item.get_closest_marker("gpu")]
     config.stash[GPU_NOT_RUN] = f"{len(gpu)} tests marked gpu not run (deselected): {reason}"
+    if hasattr(config, "workeroutput"):  # a pytest-xdist worker: the controller prints the summary
+        config.workeroutput["gpu_not_run"] = config.stash[GPU_NOT_RUN]
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node: object, error: object) -> None:
+    """pytest-xdist's controller, as a worker ends: keep the line its collection wrote."""
+    if line := getattr(node, "workeroutput", {}).get("gpu_not_run"):
+        node.config.stash[GPU_NOT_RUN] = line
 
 
 def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter, config: pytest.Config) -> None:
@@ -49,8 +58,8 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter, config: p
 
 @pytest.fixture(scope="session", autouse=True)
 def own_timing_lock(tmp_path_factory: pytest.TempPathFactory) -> None:
-    """The suite's runs share a timing lock of their own, not the host's: a run measuring elsewhere on this
-    machine must not make a test wait."""
+    """The suite's runs share a timing lock of their own (each pytest-xdist worker one), not the host's: a run
+    measuring elsewhere on this machine must not make a test wait."""
     os.environ["BENCH_MATRIX_LOCK_DIR"] = str(tmp_path_factory.mktemp("timing-lock"))
 
 
