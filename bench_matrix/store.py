@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import sqlite3
 import uuid
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -239,6 +239,12 @@ class ResultStore:
                   f"FROM records")
         return self._select(f"SELECT id, {', '.join(RECORD_COLUMNS)} FROM ({newest}) WHERE newness = 1 "
                             f"ORDER BY {_CELL_ORDER}", ())
+
+    def ok_records(self, keys: Iterable[str]) -> list[CellRecord]:
+        """Every ok record of these cells, from every run and host, oldest first."""
+        wanted = set(keys)
+        return [r for r in self._select(f"{_SELECT_RECORD} WHERE status = 'ok' ORDER BY id", ())
+                if r.cell.key in wanted]
 
     def _select(self, query: str, parameters: tuple) -> list[CellRecord]:
         if self._empty:

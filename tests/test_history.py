@@ -118,6 +118,9 @@ def test_two_runs_of_unchanged_cells_compare_unchanged(tiny_project):
             assert [changes[name]["base"], changes[name]["new"]] == stored, (name, cell)
         assert all(changes[m]["p_value"] is not None or _interference(changes[m]) for m in TIMED), cell
     assert all(regression["metric"] in TIMED for regression in pair["regressions"]), pair["regressions"]
+    moved = json.loads(_ok(cli(tiny_project, "report", "--format", "json")))["reruns"]
+    assert {model: [(r["run"], r["cells"]) for r in found] for model, found in moved.items()} == \
+        {"tiny": [(1, 2)]}  # the first run timed the same 2 artifacts
 
     itself = _compare(tiny_project, "latest", "latest")
     assert itself["summary"]["worse"] == itself["summary"]["better"] == 0, itself

@@ -76,6 +76,7 @@ def load(store_path: str | Path, view: View = View(), with_samples: bool = False
         infos = {name: store.facts(f"model:{name}").get("info") or {}
                  for name in {r.cell.model for r in records}}
         runs = store.runs()
+        history = store.ok_records({r.cell.key for r in records if r.status == "ok"})
         ok = [r for r in records if with_samples and r.status == "ok"]
         samples, batches = ({r.id: store.samples(r, series) for r in ok}
                             for series in ("latency_ms", "batch_ms"))
@@ -83,7 +84,7 @@ def load(store_path: str | Path, view: View = View(), with_samples: bool = False
     finally:
         store.close()
     about = run_facts(run or runs[-1], len(runs)) if runs else {}
-    return Loaded(records, summarize(records, infos, about), _present(samples), _present(batches),
+    return Loaded(records, summarize(records, infos, about, history), _present(samples), _present(batches),
                   requirements)
 
 

@@ -129,9 +129,10 @@ TRAILING: tuple[Column, ...] = (
                        "(older records: no clean attempt); treat it as approximate (the cell is listed "
                        "under Disturbed or Wide).",
            _timed("latency", lambda m: m.latency and m.latency.p50), SPEED),
-    Column("p50 CI\n±%", "half the width of the 95 % interval a rerun's p50 falls in, from the spread of the "
-           "per-round medians (older records: the p50's confidence interval from order statistics of the "
-           "samples), in % of the p50.", _ci, SPEED, optional=True),
+    Column("p50 CI\n±%", "half the width of the 95 % interval a rerun's p50 falls in while the machine keeps "
+           "this run's speed, from the spread of the per-round medians (older records: the p50's confidence "
+           "interval from order statistics of the samples), in % of the p50; how far other runs on the same "
+           "host put the same artifacts is in the caption.", _ci, SPEED, optional=True),
     Column("e2e p50\nms", "GPU cells: median latency at batch 1 including the host-to-device copy of the input "
            "and the copy of the outputs back (p50 ms counts the computation only, input already on the device).",
            _timed("latency_e2e", lambda m: m.latency_e2e and m.latency_e2e.p50), SPEED, optional=True),

@@ -28,8 +28,9 @@ CSV_COLUMNS = (*CELL_COLUMNS, "status", "reason", "size_bytes", "size_mib", "siz
 
 
 def report_json(records: list[CellRecord], report: Report) -> str:
-    """The JSON report: each model's requirements, the recommendations, and every record
-    (`CellRecord.to_json()`, in store order) with its verdict where it has one."""
+    """The JSON report: each model's requirements, the recommendations, how far other runs put its
+    artifacts' p50s (`reruns`), and every record (`CellRecord.to_json()`, in store order) with its verdict
+    where it has one."""
     verdicts = {_identity(row.record): row.verdict for model in report.models for row in model.rows}
     found = []
     for record in records:
@@ -38,7 +39,8 @@ def report_json(records: list[CellRecord], report: Report) -> str:
     required = {m.name: {"from": m.requirements_from, "requirements": dict(m.requirements.data)}
                 for m in report.models if m.requirements is not None}
     recommended = [r.to_json() for model in report.models for r in model.recommendations]
-    data = {"requirements": required, "recommendations": recommended, "records": found}
+    reruns = {m.name: [r.to_json() for r in m.reruns] for m in report.models if m.reruns}
+    data = {"requirements": required, "recommendations": recommended, "reruns": reruns, "records": found}
     return json.dumps(data, indent=2) + "\n"
 
 

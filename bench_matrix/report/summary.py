@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 from bench_matrix.measure.affinity import NOT_EXPOSED
 from bench_matrix.measure.metrics import HEADLINE
 from bench_matrix.measurement import Measurement
+from bench_matrix.report.reruns import Rerun, reruns
 from bench_matrix.store import CellRecord
 
 if TYPE_CHECKING:
@@ -70,6 +71,7 @@ class ModelSummary:
     requirements: Requirements | None = None  # what its cells were judged against; None: nothing declared
     requirements_from: str = ""  # where they were read
     recommendations: tuple[Recommendation, ...] = ()  # per target (and host) its cells ran on
+    reruns: tuple[Rerun, ...] = ()  # other runs that timed its shown artifacts on their hosts
 
     @property
     def task(self) -> str:
@@ -136,16 +138,20 @@ def count(records: Iterable[CellRecord]) -> dict[str, int]:
     return {status: sum(r.status == status for r in records) for status in STATUSES}
 
 
-def summarize(records: list[CellRecord], infos: Mapping[str, dict[str, Any]], run: dict[str, Any]) -> Report:
-    """Group records by model and compare each ok cell with the model's baseline."""
+def summarize(records: list[CellRecord], infos: Mapping[str, dict[str, Any]], run: dict[str, Any],
+              history: Iterable[CellRecord] = ()) -> Report:
+    """Group records by model and compare each ok cell with the model's baseline; `history`: ok records of
+    the same cells from any run, for the moves between runs."""
     by_model: dict[str, list[CellRecord]] = {}
     for record in records:
         by_model.setdefault(record.cell.model, []).append(record)
-    models = tuple(_model(name, by_model[name], infos.get(name) or {}) for name in sorted(by_model))
+    history = list(history)
+    models = tuple(_model(name, by_model[name], infos.get(name) or {}, history) for name in sorted(by_model))
     return Report(models=models, environment=environment(records), run=run, counts=count(records))
 
 
-def _model(name: str, records: list[CellRecord], info: dict[str, Any]) -> ModelSummary:
+def _model(name: str, records: list[CellRecord], info: dict[str, Any], history: list[CellRecord]
+           ) -> ModelSummary:
     framework = info.get("framework") or records[0].cell.framework
     baseline_key = info.get("baseline_key", "")  # written when the model was prepared; absent: no comparison
     baseline = next((r for r in records if r.cell.key == baseline_key), None)
@@ -162,7 +168,8 @@ def _model(name: str, records: list[CellRecord], info: dict[str, Any]) -> ModelS
                         rows=rows, skipped=tuple(r for r in by_key if r.status == "skipped"),
                         failed=tuple(r for r in by_key if r.status == "failed"), environment=environment(records),
                         suspects=suspects(ok), disturbed=problem_lines(ok, disturbed_phases),
-                        wide=problem_lines(ok, wide_phases))
+                        wide=problem_lines(ok, wide_phases),
+                        reruns=reruns(ok, (r for r in history if r.cell.model == name)))
 
 
 def disturbed_phases(record: CellRecord) -> dict[str, str]:

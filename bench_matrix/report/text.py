@@ -42,7 +42,8 @@ def caption(model: ModelSummary) -> str:
     threads = ", ".join(map(str, model.threads)) or DASH
     return (f"Rows are the ok cells, baseline first, then fastest p50 first. Latency at batch 1; "
             f"throughput at batch size {batches}; {threads} thread(s). {timing_line(model)} "
-            "Speed-up = baseline time ÷ cell time, paired by round (± its 95 % interval; older records: "
+            f"{rerun_line(model)}Speed-up = baseline time ÷ cell time, paired by round (± its 95 % interval; "
+            "older records: "
             "baseline p50 ÷ cell p50; >1× = faster); "
             "size ratio = baseline size ÷ cell size (>1× = smaller); "
             "↑ = higher is better, ↓ = lower is better.")
@@ -62,7 +63,33 @@ def timing_line(model: ModelSummary) -> str:
     repeats = max((f.visits or 1.0) for f in facts)
     baseline = f" (the baseline {repeats:.1f} times a round)" if repeats >= 1.05 else ""
     return (f"Timed in {span} interleaved rounds of {length} windows, {_processes(facts)}, each round in a "
-            f"fresh random order{baseline}{budget}; p50 intervals from the per-round medians.")
+            f"fresh random order{baseline}{budget}; p50 intervals from the per-round medians (they hold "
+            f"while the machine keeps this run's speed).")
+
+
+def rerun_line(model: ModelSummary) -> str:
+    """How far other runs on the same hosts put the same artifacts' p50s, and how many of them this run's p50
+    intervals held; "" when no other run timed them (report/reruns.py)."""
+    if not model.reruns:
+        return ""
+    moves = sorted(r.move for r in model.reruns)
+    largest = max(model.reruns, key=lambda r: abs(r.move))
+    span = f"{moves[0]:+.1%}" if len(moves) == 1 else f"{moves[0]:+.1%} to {moves[-1]:+.1%}"
+    who, how = (("Another run", "the median over its cells") if len(moves) == 1 else
+                (f"{len(moves)} other runs", "each the median over a run's cells; in the largest move"))
+    return (f"{who} on the same host timed these artifacts: p50s {span} off this run's ({how}, "
+            f"{largest.alike} of {largest.cells} cells the same way){_held(model)}. ")
+
+
+def _held(model: ModelSummary) -> str:
+    """How many of the other runs' p50s this run's intervals held, and why they may not."""
+    held, intervals = (sum(r.held for r in model.reruns), sum(r.intervals for r in model.reruns))
+    if not intervals:
+        return ""
+    said = f"; this run's p50 intervals held {held} of {intervals}"
+    return said if held >= 0.9 * intervals else (
+        f"{said}: a machine's speed can move between runs, which intervals from inside one run cannot see; "
+        "the paired speed-ups cancel what the cells share")
 
 
 def _processes(facts: list[RoundsFacts]) -> str:
