@@ -30,9 +30,13 @@ GPU_NOT_RUN = pytest.StashKey[str]()  # the line saying which gpu-marked tests w
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Without an NVIDIA GPU (the first reason every GPU probe gives), the gpu-marked tests are deselected and
+    """Files holding slow tests first (pytest-xdist hands out whole files: the longest should start first).
+    Without an NVIDIA GPU (the first reason every GPU probe gives), the gpu-marked tests are deselected and
     reported in one line instead of skipped one by one."""
     from bench_matrix.hardware import no_gpu_reason
+
+    slow = {item.path for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.path not in slow)  # stable: a file's tests stay together, in order
 
     gpu = [item for item in items if item.get_closest_marker("gpu")]
     if not gpu or (reason := no_gpu_reason()) is None:

@@ -169,6 +169,7 @@ def build():
 """
 
 
+@pytest.mark.slow
 def test_two_models_sharing_weights_with_other_inputs_share_no_export(tmp_path):
     import torch
 
@@ -196,6 +197,7 @@ def test_two_models_sharing_weights_with_other_inputs_share_no_export(tmp_path):
         assert found[f"{model}/onnxruntime"]["mse"] == pytest.approx(found[f"{model}/pytorch"]["mse"], rel=1e-5)
 
 
+@pytest.mark.slow
 def test_a_run_says_when_the_calibration_split_had_fewer_samples_than_asked(onnx_project):
     (onnx_project / "m.yaml").write_text(onnx_matrix_text(["tiny"], ["int8"]).replace(
         "strategy: [none]", "strategy: [ptq_static]"))

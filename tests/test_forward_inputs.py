@@ -182,6 +182,7 @@ HUGGING_FACE = ("it is a Hugging Face transformers model, whose own tracer "
                 "(transformers.utils.fx.symbolic_trace)")
 
 
+@pytest.mark.slow
 def test_a_hugging_face_style_forward_gets_its_inputs_by_name_in_every_trace(tmp_path):
     """forward(input_ids=None, attention_mask=None, inputs_embeds=None): FX would trace inputs_embeds as an
     input too (and the model refuses both); the int64 mask must stay unquantised in FX int8."""

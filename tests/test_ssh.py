@@ -17,7 +17,7 @@ from ssh_server import (Server, device_at, device_python, free_port, jetson_path
                         why_no_sshd)
 
 NO_SSHD = why_no_sshd()
-pytestmark = pytest.mark.skipif(NO_SSHD is not None, reason=NO_SSHD or "")
+pytestmark = [pytest.mark.skipif(NO_SSHD is not None, reason=NO_SSHD or ""), pytest.mark.slow]
 # two models of one slow_ort cell each: the first passes the device's gate, the second waits there
 GATED = onnx_matrix_text(["tiny", "twin"], ["fp32"]).replace("[onnxruntime]", "[slow_ort]").replace(
     *TWO_PROCESSES)  # a cell's 2 processes pass the gate together

@@ -192,6 +192,7 @@ def test_package_conversion_writes_only_into_its_output_directory(aot, source: S
     assert meta["inductor_configs"]["cpp.dynamic_threads"] is True
 
 
+@pytest.mark.slow
 def test_package_loads_in_a_fresh_process_for_every_batch_size(aot, reference: np.ndarray,
                                                                tmp_path: Path) -> None:
     _, out, meta = aot
