@@ -43,8 +43,7 @@ def caption(model: ModelSummary) -> str:
     return (f"Rows are the ok cells, baseline first, then fastest p50 first. Latency at batch 1; "
             f"throughput at batch size {batches}; {threads} thread(s). {timing_line(model)} "
             f"{rerun_line(model)}Speed-up = baseline time ÷ cell time, paired by round (± its 95 % interval; "
-            "older records: "
-            "baseline p50 ÷ cell p50; >1× = faster); "
+            "older records: baseline p50 ÷ cell p50; >1× = faster); "
             "size ratio = baseline size ÷ cell size (>1× = smaller); "
             "↑ = higher is better, ↓ = lower is better.")
 
