@@ -306,5 +306,31 @@ def test_figures_record_the_processes_and_mark_only_cells_that_did_not_leave_nar
     assert record["rounds"]["reached"] > settings.target  # wider than the target, yet it left narrow:
     assert record["interference"]["phases"][LATENCY]["wide"] is None  # not marked
     marked = figures(spent, base, settings, Limits(), {LATENCY: model}).fields["interference"]
-    assert marked["phases"][LATENCY]["wide"].startswith("known to ±")  # the budget ran out first
+    wide = marked["phases"][LATENCY]["wide"]
+    assert wide.startswith("known to ±")  # the budget ran out first; the 4 % apart processes, not the rounds,
+    assert "more processes a cell (`processes`) would narrow it, more time would not" in wide  # keep it wide
     assert record["latency_ms"]["n"] == 12 * 30 and record["speedup"]["rounds"] == 6
+
+
+def test_a_cell_wide_for_want_of_rounds_says_about_how_many_times_as_many_would_do():
+    from bench_matrix.measure.interference import Limits
+    from bench_matrix.measure.schedule import RoundsSettings, Window, spread
+    from bench_matrix.scenarios.timed import figures
+
+    rng = np.random.default_rng(5)
+
+    def timed(base_ms: float) -> Timed:
+        found = Timed(stop="budget")
+        for r in range(6):
+            drift = np.exp(rng.normal(0.0, 0.03))  # each round's level: what more rounds average out
+            for j in (0, 1):  # processes alike
+                found.add((r, j), Window(LATENCY, base_ms * drift * np.exp(rng.normal(0.0, 0.01, 30))))
+        return found
+
+    base, cell = timed(10.0), timed(5.0)
+    model = spread([base, cell])
+    settings = RoundsSettings(target=0.005, window_s=0.1)
+    record = figures(cell, base, settings, Limits(), {LATENCY: model}).fields
+    reached, wide = record["rounds"]["reached"], record["interference"]["phases"][LATENCY]["wide"]
+    times = float(wide.split("about ")[1].split(" times the rounds would reach it (`timing_budget_s`)")[0])
+    assert reached > 0.005 and times == pytest.approx((reached / 0.005) ** 2, rel=0.2), wide

@@ -4,21 +4,23 @@ windows: pooled percentiles, intervals from the rounds, the paired speed-up, and
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from collections.abc import Mapping
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 
 from bench_matrix.measure.interference import Limits
-from bench_matrix.measure.rounds import Slot, Spread, level_width, moderated, p50_interval, rate_interval
-from bench_matrix.measure.rounds import log_levels, medians, process_spread
+from bench_matrix.measure.rounds import Interval, Slot, Spread, level_width, moderated, p50_interval
+from bench_matrix.measure.rounds import log_levels, medians, process_spread, rate_interval
 from bench_matrix.measure.schedule import LATENCY, RoundsSettings, Timed, Window, paired, rates
 from bench_matrix.measure.stats import latency_summary, pack_samples
 from bench_matrix.scenarios.base import Outcome
 
 E2E, THROUGHPUT = "latency_e2e", "throughput"
+MANY_ROUNDS_T = 1.96  # the 95 % t-quantile the intervals tend to as rounds are added
 SERIES = {LATENCY: "latency_ms", E2E: "latency_ms_e2e"}  # latency kinds -> their record field
 SAMPLED = {LATENCY: "latency_ms", E2E: "latency_ms_e2e", THROUGHPUT: "batch_ms"}  # kind -> stored raw series
 
@@ -36,24 +38,44 @@ def figures(timed: Timed, baseline: Timed | None, settings: RoundsSettings, limi
     ratio = paired(baseline, timed, model) if baseline is not None and baseline is not timed else None
     if ratio is not None:
         fields["speedup"] = _rounded(ratio.as_dict())
-    p50 = p50_interval(series.get(LATENCY, {}), model)
-    widths = [w for w in (p50 and level_width(p50), ratio and ratio.half_width) if w is not None]
-    fields["rounds"] = {"rounds": timed.rounds(), "stop": timed.stop, "target": settings.target,
-                        "reached": round(max(widths), 6) if widths else None, "window_s": settings.window_s,
-                        "processes": len({j for _, j in timed.windows(LATENCY)}),
-                        "visits": round(timed.visits(), 3), **_spreads(series.get(LATENCY, {}), model)}
-    fields["interference"] = _interference(timed, settings, limits, widths)
+    fields["rounds"], reached = _rounds(timed, settings, series.get(LATENCY, {}), model, ratio)
+    fields["interference"] = _interference(timed, settings, limits, reached)
     samples = {SAMPLED[kind]: pack_samples(np.concatenate(list(found.values())) * 1e6)
                for kind, found in series.items()}
     return Outcome(fields, samples)
 
 
-def _spreads(series: dict[Slot, np.ndarray], model: Spread | None) -> dict[str, float | None]:
-    """How the cell's processes differed (its own spread, moderated by the model's) and the model's pooled
-    spread, relative."""
+def _rounds(timed: Timed, settings: RoundsSettings, series: dict[Slot, np.ndarray], model: Spread | None,
+            ratio: Interval | None) -> tuple[dict[str, Any], Width | None]:
+    """The record's `rounds` (how many, why they stopped, the width reached: the wider of the run's p50 and
+    the speed-up, the processes and how they differed), and the width reached with its floor."""
     own = moderated(process_spread(log_levels(medians(series))), model)
-    return {"process_spread": round(own.relative, 6) if own else None,
-            "model_spread": round(model.relative, 6) if model else None}
+    processes = len({j for _, j in timed.windows(LATENCY)})
+    p50 = p50_interval(series, model)
+    widths = [Width(level_width(p50), _floor(processes, own)) if p50 else None,
+              Width(ratio.half_width, _floor(processes, own, model)) if ratio else None]
+    reached = max((w for w in widths if w is not None), key=lambda w: w.reached, default=None)
+    return ({"rounds": timed.rounds(), "stop": timed.stop, "target": settings.target,
+             "reached": round(reached.reached, 6) if reached else None, "window_s": settings.window_s,
+             "processes": processes, "visits": round(timed.visits(), 3),
+             "process_spread": round(own.relative, 6) if own else None,
+             "model_spread": round(model.relative, 6) if model else None}, reached)
+
+
+@dataclass(frozen=True)
+class Width:
+    """An interval's half-width reached (as the rounds' target counts it), and how narrow more rounds could
+    make it: what the processes' lifetime differences alone leave."""
+
+    reached: float
+    floor: float
+
+
+def _floor(processes: int, *spreads: Spread | None) -> float:
+    """The half-width the processes' parts alone give (each spread ÷ the processes; the baseline's taken as
+    the model's), at the t-quantile of many rounds."""
+    parts = [s.variance / processes for s in spreads if s is not None and s.variance > 0 and processes > 1]
+    return MANY_ROUNDS_T * math.sqrt(sum(parts))
 
 
 def _latency(series: dict[Slot, np.ndarray], model: Spread | None) -> dict[str, Any]:
@@ -82,7 +104,7 @@ def _throughput(windows: dict[Slot, Window], model: Spread | None) -> dict[str, 
 
 
 def _interference(timed: Timed, settings: RoundsSettings, limits: Limits,
-                  widths: list[float]) -> dict[str, Any]:
+                  reached: Width | None) -> dict[str, Any]:
     """Flagged when more than `settings.disturbed_share` of a kind's windows were disturbed; each kind's
     windows, the dropped ones, and why a figure is marked (disturbed, or its interval wider than the
     target)."""
@@ -95,23 +117,37 @@ def _interference(timed: Timed, settings: RoundsSettings, limits: Limits,
         disturbed = (f"{dropped} of {total} windows disturbed (limit {settings.disturbed_share:.0%}): "
                      f"{why[0][0]}" if dropped > settings.disturbed_share * total else None)
         phases[kind] = {"windows": total, "dropped": dropped, "disturbed": disturbed,
-                        "wide": _wide(timed, settings, widths) if kind == LATENCY else None}
+                        "wide": _wide(timed, settings, reached) if kind == LATENCY else None}
     reasons = [f"{kind}: {phase['disturbed']}" for kind, phase in phases.items() if phase["disturbed"]]
     return {"flagged": bool(reasons), "reason": " | ".join(reasons) or None, "limits": asdict(limits),
             "phases": phases}
 
 
-def _wide(timed: Timed, settings: RoundsSettings, widths: list[float]) -> str | None:
-    """Why the latency figures are marked when their intervals stayed wider than the target (a cell that left
-    the rounds narrow is not: its final width pools the model's process spread over every cell's rounds)."""
-    reached = max(widths) if widths else None
-    if timed.stop == "width" or (reached is not None and reached <= settings.target):
+def _wide(timed: Timed, settings: RoundsSettings, reached: Width | None) -> str | None:
+    """Why the latency figures are marked when their intervals stayed wider than the target, and what would
+    narrow them (a cell that left the rounds narrow is not marked: its final width pools the model's process
+    spread over every cell's rounds)."""
+    if timed.stop == "width" or (reached is not None and reached.reached <= settings.target):
         return None
-    width = f"±{reached:.1%}" if reached is not None else "no interval"
+    width = f"±{reached.reached:.1%}" if reached is not None else "no interval"
     ended = {"budget": "the time budget was spent", "rounds": "the most rounds were run"}.get(timed.stop,
                                                                                               timed.stop)
-    return (f"known to {width} after {timed.rounds()} rounds (target ±{settings.target:.0%}; "
-            f"{ended})")
+    return (f"known to {width} after {timed.rounds()} rounds (target ±{100 * settings.target:g}%; "
+            f"{ended}){_narrower(reached, settings.target)}")
+
+
+def _narrower(reached: Width | None, target: float) -> str:
+    """What would reach the target: more rounds (about how many times as many: the rounds' part of the
+    width shrinks as 1/√rounds) or, where the processes' part alone is wider, more processes."""
+    if reached is None:
+        return ""
+    if reached.floor >= target:
+        return (f": the processes' own differences alone keep it wider than ±{reached.floor:.1%}, so more "
+                f"processes a cell (`processes`) would narrow it, more time would not")
+    times = (reached.reached ** 2 - reached.floor ** 2) / (target ** 2 - reached.floor ** 2)
+    if times < 1.1:
+        return ": a few more rounds would reach it (`timing_budget_s`)"
+    return f": about {times:.1f} times the rounds would reach it (`timing_budget_s`)"
 
 
 def _rounded(found: dict[str, Any]) -> dict[str, Any]:
