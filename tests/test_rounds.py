@@ -308,7 +308,7 @@ def test_figures_record_the_processes_and_mark_only_cells_that_did_not_leave_nar
     marked = figures(spent, base, settings, Limits(), {LATENCY: model}).fields["interference"]
     wide = marked["phases"][LATENCY]["wide"]
     assert wide.startswith("known to ±")  # the budget ran out first; the 4 % apart processes, not the rounds,
-    assert "more processes a cell (`processes`) would narrow it, more time would not" in wide  # keep it wide
+    assert "however many rounds; more processes a cell (`processes`) would narrow it" in wide  # keep it wide
     assert record["latency_ms"]["n"] == 12 * 30 and record["speedup"]["rounds"] == 6
 
 

@@ -52,8 +52,9 @@ def _rounds(timed: Timed, settings: RoundsSettings, series: dict[Slot, np.ndarra
     own = moderated(process_spread(log_levels(medians(series))), model)
     processes = len({j for _, j in timed.windows(LATENCY)})
     p50 = p50_interval(series, model)
-    widths = [Width(level_width(p50), _floor(processes, own)) if p50 else None,
-              Width(ratio.half_width, _floor(processes, own, model)) if ratio else None]
+    spread = own.relative if own else 0.0
+    widths = [Width(level_width(p50), _floor(processes, own), spread) if p50 else None,
+              Width(ratio.half_width, _floor(processes, own, model), spread) if ratio else None]
     reached = max((w for w in widths if w is not None), key=lambda w: w.reached, default=None)
     return ({"rounds": timed.rounds(), "stop": timed.stop, "target": settings.target,
              "reached": round(reached.reached, 6) if reached else None, "window_s": settings.window_s,
@@ -65,10 +66,11 @@ def _rounds(timed: Timed, settings: RoundsSettings, series: dict[Slot, np.ndarra
 @dataclass(frozen=True)
 class Width:
     """An interval's half-width reached (as the rounds' target counts it), and how narrow more rounds could
-    make it: what the processes' lifetime differences alone leave."""
+    make it: what the processes' lifetime differences (the cell's `spread`, relative) alone leave."""
 
     reached: float
     floor: float
+    spread: float
 
 
 def _floor(processes: int, *spreads: Spread | None) -> float:
@@ -142,8 +144,9 @@ def _narrower(reached: Width | None, target: float) -> str:
     if reached is None:
         return ""
     if reached.floor >= target:
-        return (f": the processes' own differences alone keep it wider than ±{reached.floor:.1%}, so more "
-                f"processes a cell (`processes`) would narrow it, more time would not")
+        return (f": its processes differed by {reached.spread:.1%}, which alone keeps it wider than "
+                f"±{reached.floor:.1%} however many rounds; more processes a cell (`processes`) would "
+                "narrow it")
     times = (reached.reached ** 2 - reached.floor ** 2) / (target ** 2 - reached.floor ** 2)
     if times < 1.1:
         return ": a few more rounds would reach it (`timing_budget_s`)"
