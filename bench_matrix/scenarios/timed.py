@@ -59,7 +59,7 @@ def _rounds(timed: Timed, settings: RoundsSettings, series: dict[Slot, np.ndarra
     return ({"rounds": timed.rounds(), "stop": timed.stop, "target": settings.target,
              "reached": round(reached.reached, 6) if reached else None, "window_s": settings.window_s,
              "processes": processes, "visits": round(timed.visits(), 3),
-             "process_spread": round(own.relative, 6) if own else None,
+             "process_spread": round(spread, 6) if own else None,
              "model_spread": round(model.relative, 6) if model else None}, reached)
 
 
