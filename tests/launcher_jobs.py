@@ -37,6 +37,17 @@ class EchoJob:
     result: ClassVar[Any] = Any
 
 
+@dataclass(frozen=True)
+class EnvJob:
+    names: tuple[str, ...]
+    function: ClassVar[str] = "launcher_jobs:env"
+    result: ClassVar[Any] = Any
+
+
+def env(job: EnvJob):
+    return {name: os.environ.get(name) for name in job.names}
+
+
 def abort(job: AbortJob):
     print("about to abort", flush=True)
     sys.stdout.flush()

@@ -89,6 +89,8 @@ def start_child(job: Any, args: list[str], log: Path, threads: int | None, varia
     env = {**os.environ, **variables, "PYTHONUNBUFFERED": "1"}
     if threads is not None:
         env.update({name: str(threads) for name in THREAD_VARIABLES})
+    else:  # every core (training): waiting OpenMP threads sleep, so one busy core does not stall each step
+        env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     with open(log, "ab") as log_file:
         log_file.write(f"\n=== {type(job).function} {time.strftime('%Y-%m-%d %H:%M:%S')} ===\n".encode())
         log_file.flush()
