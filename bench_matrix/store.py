@@ -35,6 +35,7 @@ _SELECT_RECORD = f"SELECT id, {', '.join(RECORD_COLUMNS)} FROM records"
 _CELL_ORDER = "model, backend, strategy, precision, target, host"
 # newest first among the records of one cell on one host
 _NEWEST = "COALESCE(finished_at, started_at, '') DESC, id DESC"
+_KEYS_A_QUERY = 500  # below SQLite's smallest limit on a statement's variables (999)
 
 
 @dataclass
@@ -242,9 +243,11 @@ class ResultStore:
 
     def ok_records(self, keys: Iterable[str]) -> list[CellRecord]:
         """Every ok record of these cells, from every run and host, oldest first."""
-        wanted = set(keys)
-        return [r for r in self._select(f"{_SELECT_RECORD} WHERE status = 'ok' ORDER BY id", ())
-                if r.cell.key in wanted]
+        wanted = sorted(set(keys))
+        chunks = [wanted[i:i + _KEYS_A_QUERY] for i in range(0, len(wanted), _KEYS_A_QUERY)]
+        found = [r for chunk in chunks for r in self._select(
+            f"{_SELECT_RECORD} WHERE status = 'ok' AND key IN ({', '.join('?' * len(chunk))})", tuple(chunk))]
+        return sorted(found, key=lambda r: r.id or 0)
 
     def _select(self, query: str, parameters: tuple) -> list[CellRecord]:
         if self._empty:

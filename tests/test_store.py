@@ -183,3 +183,15 @@ def test_raw_samples_round_trip_and_follow_their_record(tmp_path):
     store.put(record)
     assert store.samples(record) is None  # a failed record has none
     store.close()
+
+
+def test_ok_records_of_more_cells_than_one_query_may_name_come_back_oldest_first(tmp_path):
+    store = ResultStore(tmp_path / "r.sqlite")
+    run = store.begin_run("m.yaml", "h", {}).id
+    cells = [Cell(f"m{i}", "pytorch", "onnxruntime", "none", "fp32", "cpu") for i in range(1200)]
+    for cell in reversed(cells):  # the last cell's record is the oldest
+        store.put(_record(cell, run))
+    store.put(_record(cells[0], run, status="failed"))
+    found = store.ok_records(c.key for c in cells[:1100])
+    assert [r.cell for r in found] == list(reversed(cells[:1100])) and all(r.status == "ok" for r in found)
+    store.close()
