@@ -12,15 +12,28 @@ import fuzz_cases
 from conftest import cli
 
 from bench_matrix.cli import main
+from bench_matrix.registry import load_backend
 
 
 def plan_runs(project: Path, matrix: Path) -> int:
-    """`plan` accepts the matrix unchanged: exit 0, nothing skipped; the number of cells that will run."""
+    """`plan` accepts the matrix unchanged (exit 0) and skips exactly the cells whose backend's probe says
+    this machine cannot run (OpenVINO fp16 on a CPU without fp16); the number of cells that will run."""
     done = cli(project, "plan", str(matrix))
     assert done.returncode == 0, done.stderr
-    counts = re.search(r"(\d+) will run, \d+ already stored, 0 will be skipped", done.stdout)
+    counts = re.search(r"(\d+) will run, \d+ already stored, (\d+) will be skipped", done.stdout)
     assert counts and int(counts.group(1)) > 0, done.stdout
+    rows = [cells for cells in _table_rows(done.stdout) if cells[5] in ("will run", "skipped")]
+    assert len(rows) == int(counts.group(1)) + int(counts.group(2)), done.stdout
+    for _, backend, _, precision, target, state, _ in rows:
+        reason = load_backend(backend).probe(target, precision)
+        assert (state == "skipped") == (reason is not None), (backend, precision, target, state, reason)
     return int(counts.group(1))
+
+
+def _table_rows(printed: str) -> list[list[str]]:
+    """The first line of each row of `plan`'s cell table: its seven columns, stripped."""
+    lines = (line.strip().strip("│").split("│") for line in printed.splitlines() if line.count("│") == 8)
+    return [[cell.strip() for cell in cells] for cells in lines if cells[0].strip()]
 
 
 def init(project: Path, model: str, *options: str) -> Path:
