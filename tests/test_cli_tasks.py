@@ -11,6 +11,8 @@ import pytest
 import task_models
 from conftest import FAST_SETTINGS, TESTS, cli
 
+from bench_matrix.report.columns import sig
+
 pytestmark = pytest.mark.slow
 SPLIT = "split: {train: 0.5, calibration: 0.25, test: 0.25}"
 # cells no assertion reads (each costs two processes): the two-input models' eager cells, int8 heads, ORT nan
@@ -84,8 +86,23 @@ def test_named_inputs_of_two_dtypes_several_outputs_and_nan_outputs(tmp_path):
     heads = found["heads/onnxruntime/none/fp32"]["metrics"]
     assert heads["mse"] == pytest.approx(found["heads/pytorch/none/fp32"]["metrics"]["mse"], rel=1e-4)
     assert len(heads["mse_per_output"]) == 3  # two heads, three label columns
+    _each_head_is_reported(tmp_path, heads["per_output"])
     nan = found["nan/pytorch/none/fp32"]
     assert nan["status"] == "failed" and "not finite" in nan["reason"] and "NaN" in nan["reason"]
+
+
+def _each_head_is_reported(project, heads: list[dict]) -> None:
+    """The report's terminal and Markdown tables show each head's own MSE and difference from the baseline."""
+    shown = cli(project, "report", "--model", "heads", "--out", str(project / "pages"))
+    assert shown.returncode == 0, shown.stderr
+    page = (project / "pages" / "heads.md").read_text().replace("\\|", "|")
+    row = next(line for line in page.splitlines() if line.startswith("| onnxruntime none fp32 |"))
+    for number, (head, dims) in enumerate(zip(heads, ("2", "1"), strict=True), 1):
+        for header in ("MSE", "max |Δ|"):
+            assert f"{header} ↓ out {number} ({dims})" in page, page
+        assert f"out {number} ({dims})" in shown.stdout.replace("\n", " "), shown.stdout
+        cells = [cell.strip() for cell in row.split("|")]
+        assert sig(head["mse"], 4) in cells and sig(head["max_abs_diff_vs_baseline"], 3) in cells, (head, row)
 
 
 def test_mistakes_known_before_running_are_refused_with_exit_2(tmp_path):

@@ -173,10 +173,13 @@ def _better(key: str) -> str:
     return "higher is better" if DIRECTIONS[key] == "higher" else "lower is better"
 
 
+def _arrow(key: str) -> str:
+    return "↑" if DIRECTIONS[key] == "higher" else "↓"
+
+
 def _accuracy(header: str, key: str, what: str, render: Callable[[float | None], str]) -> Column:
     """A column of one accuracy metric, its direction in the header (↑/↓) and the footnote."""
-    arrow = "↑" if DIRECTIONS[key] == "higher" else "↓"
-    return Column(f"{header} {arrow}", f"{what}; {_better(key)}.", _metric(key, render), ACCURACY)
+    return Column(f"{header} {_arrow(key)}", f"{what}; {_better(key)}.", _metric(key, render), ACCURACY)
 
 
 def _sig(digits: int) -> Callable[[float | None], str]:
@@ -224,7 +227,41 @@ def model_columns(model: ModelSummary) -> tuple[Column, ...]:
     """Every column of the model's results table: its task's accuracy columns and its plugins' figures."""
     accuracy = ACCURACY_COLUMNS.get(model.task, ACCURACY_COLUMNS["none"])
     host = (HOST,) if len(hosts(model)) > 1 else ()
-    return (LEADING[0], *host, VERDICT, *LEADING[1:], *accuracy, *_plugin_columns(model.rows), *TRAILING)
+    return (LEADING[0], *host, VERDICT, *LEADING[1:], *accuracy, *output_columns(model),
+            *_plugin_columns(model.rows), *TRAILING)
+
+
+PER_OUTPUT = {"regression": (("MSE", "mse", 4), ("max |Δ|", "max_abs_diff_vs_baseline", 3)),
+              "classification": (("max |Δ|", "max_abs_diff_vs_baseline", 3),),
+              "none": (("max |Δ|", "max_abs_diff_vs_baseline", 3), ("Cosine", "cosine_similarity", 6))}
+
+
+def output_columns(model: ModelSummary) -> list[Column]:
+    """A model with several outputs: each output's own figures (the record's `per_output`), output by output."""
+    count = max((len(_outputs(row)) for row in model.rows), default=0)
+    if count < 2:
+        return []
+    shapes = model.info.get("outputs") or []
+    figures = PER_OUTPUT.get(model.task, PER_OUTPUT["none"])
+    return [_output_column(index, shapes[index] if index < len(shapes) else None, *figure)
+            for index in range(count) for figure in figures]
+
+
+def _outputs(row: Row) -> tuple[Any, ...]:
+    return row.record.metrics.task.per_output or ()
+
+
+def _output_column(index: int, shape: Any, header: str, key: str, digits: int) -> Column:
+    """One figure of output `index` (its shape, per sample, in the header) from the record's `per_output`."""
+    dims = "×".join(str(d) for d in shape) if isinstance(shape, list) and shape else "scalar"
+
+    def render(row: Row) -> str:
+        outputs = _outputs(row)
+        value = outputs[index].get(key) if index < len(outputs) and isinstance(outputs[index], dict) else None
+        return sig(number(value), digits)
+    return Column(f"{header} {_arrow(key)}\nout {index + 1} ({dims})",
+                  f"`{key}` of output {index + 1} alone (per sample {dims}); {_better(key)}.",
+                  render, ACCURACY, optional=True)
 
 
 def hosts(model: ModelSummary) -> tuple[str, ...]:
