@@ -130,10 +130,10 @@ def _several_inputs(matrix: Matrix, model: ModelSpec) -> bool:
 
 
 def _check_models(matrix: Matrix, models: dict[str, ModelPlan], probe: Probe) -> None:
-    """Inputs the data cannot feed or a factory's forward cannot take, synthetic data for a model whose inputs
-    nobody declared, a batch size fixed in the model's file: exit 2, located."""
+    """Inputs the data cannot feed or a factory's forward cannot take, synthetic data for undeclared inputs,
+    an .npz dataset preparing would refuse, a batch size fixed in the model's file: exit 2, located."""
     found = (_model_problem(matrix, i, models[m.name], probe) for i, m in enumerate(matrix.models))
-    problems = [problem for problem in found if problem]
+    problems = list(dict.fromkeys(problem for problem in found if problem))  # a shared dataset's: once
     if problems:
         raise MatrixError([f"{matrix.path}:{_line(matrix, at)}: {format_path(at)}: {message}"
                            for at, message in problems])
@@ -146,6 +146,8 @@ def _model_problem(matrix: Matrix, i: int, planned: ModelPlan, probe: Probe) -> 
         return at, (f"model {m.name}: synthetic data is drawn for the model's inputs, which its "
                     f"{'file does' if m.file else 'factory and weights do'} not declare; declare "
                     f"them under models[{i}].inputs (name, shape, dtype)")
+    if unreadable := data.read_problem(planned.dataset, planned.as_is):
+        return (at + ("dataset",) if m.dataset else ("dataset",)), unreadable
     described = data.describe(planned.dataset, m.layout, planned.as_is)
     names = [spec.name for spec in planned.inputs] if planned.inputs else list(described or ())
     problem = _forward_problem(m, names, probe)
