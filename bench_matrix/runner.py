@@ -115,9 +115,11 @@ class Runner:
             self._drain(wait=True)
 
     def _submit(self, work: Work, then: Callable[[Ended], None]) -> None:
-        """Hand work to the executor; `then` takes how it ended (at once when the executor ran it already)."""
+        """Hand work to the executor; `then` takes how it ended (at once when the executor ran it already).
+        Its phases show under the step it was handed over in, whatever steps began since."""
         self._handlers[work] = then
-        self.executor.submit(work, self.progress.phase, self.progress.tick)
+        step = self.progress.current
+        self.executor.submit(work, lambda name: self.progress.phase(name, step), self.progress.tick)
         self._drain(wait=False)
 
     def _drain(self, wait: bool) -> None:
