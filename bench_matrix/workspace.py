@@ -45,6 +45,10 @@ class Workspace:
     def intermediates(self, backend: str, fingerprint: str) -> Path:
         return self.root / "cache" / "intermediates" / backend / fingerprint
 
+    def references(self, fingerprint: str) -> Path:
+        """The fp32 outputs of a baseline artifact that `compare --remeasure` scores its side against."""
+        return self.root / "cache" / "references" / fingerprint
+
     def finetuned(self, fingerprint: str) -> Path:
         return self.root / "cache" / "finetuned" / fingerprint
 
