@@ -218,7 +218,9 @@ def _run(args: argparse.Namespace, console) -> int:
                                                           f"(`bench-matrix plan` says why)" if invalid else ""))
     print_run_verdict(args.results or ws.results, matrix, overrides, console)
     console.print("Next: [bold]bench-matrix report[/]", highlight=False)
-    return 0
+    for why in executor.lost().values():
+        console.print(f"{why}; the cells given to it failed", style="red", markup=False, highlight=False)
+    return 1 if executor.lost() else 0
 
 
 def _plan(args: argparse.Namespace, console) -> int:

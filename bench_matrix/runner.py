@@ -80,6 +80,7 @@ class Runner:
         self.counts = {"ok": 0, "skipped": 0, "failed": 0,
                        "cached": len([p for p in chosen if p.state == "run"]) - len(todo)}
         begin = time.monotonic()
+        self.ws.sweep_jobs()
         run = self.store.begin_run(str(self.matrix.path), self.host, environment.run_versions(), self.label,
                                    _now())
         self.run_id = run.id
@@ -91,6 +92,7 @@ class Runner:
             wall_s = round(time.monotonic() - begin, 1)
             summary = {"wall_s": wall_s, "counts": self.counts, "completed": completed}
             self.store.end_run(run.id, _now(), {**summary, **self._shard_summary()})
+            self.ws.sweep_jobs()
         return self.counts
 
     def _shard_summary(self) -> dict[str, str]:
@@ -115,9 +117,11 @@ class Runner:
             self._drain(wait=True)
 
     def _submit(self, work: Work, then: Callable[[Ended], None]) -> None:
-        """Hand work to the executor; `then` takes how it ended (at once when the executor ran it already)."""
+        """Hand work to the executor; `then` takes how it ended (at once when the executor ran it already).
+        Its phases show under the step it was handed over in, whatever steps began since."""
         self._handlers[work] = then
-        self.executor.submit(work, self.progress.phase, self.progress.tick)
+        step = self.progress.current
+        self.executor.submit(work, lambda name: self.progress.phase(name, step), self.progress.tick)
         self._drain(wait=False)
 
     def _drain(self, wait: bool) -> None:

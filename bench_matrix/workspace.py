@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import stat
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,6 +14,7 @@ from typing import Any, BinaryIO
 from bench_matrix.errors import UserError
 
 DEFAULT_ROOT = Path(".bench-matrix")
+JOB_FILE = re.compile(r"(?:job|session)-(\d+)-\d+\.")  # named by the pid of the process that wrote it
 FILE_TYPES = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a named pipe"),
               (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
               (stat.S_ISSOCK, "a socket"))
@@ -30,8 +32,19 @@ class Workspace:
 
     @property
     def jobs(self) -> Path:
-        """Job and result files exchanged with job processes (removed as each job ends)."""
-        return self.root / "jobs"
+        """Job and result files exchanged with job processes, a folder per host (a workspace may be shared):
+        removed as each job ends, and by `sweep_jobs` where a killed run left them."""
+        from bench_matrix.measure.env import host_name
+
+        return self.root / "jobs" / host_name()
+
+    def sweep_jobs(self) -> None:
+        """Remove this host's job files whose process (the run that wrote them) has ended; those of a live
+        one, another run's, stay."""
+        for path in self.jobs.glob("*") if self.jobs.is_dir() else ():
+            found = JOB_FILE.match(path.name)
+            if found and not _alive(int(found[1])):
+                path.unlink(missing_ok=True)
 
     def datasets(self, fingerprint: str) -> Path:
         return self.root / "cache" / "datasets" / fingerprint
@@ -44,6 +57,10 @@ class Workspace:
 
     def intermediates(self, backend: str, fingerprint: str) -> Path:
         return self.root / "cache" / "intermediates" / backend / fingerprint
+
+    def references(self, fingerprint: str) -> Path:
+        """The fp32 outputs of a baseline artifact that `compare --remeasure` scores its side against."""
+        return self.root / "cache" / "references" / fingerprint
 
     def finetuned(self, fingerprint: str) -> Path:
         return self.root / "cache" / "finetuned" / fingerprint
@@ -67,6 +84,16 @@ class Workspace:
     def cell_log(self, key: str) -> Path:
         """The log of one cell's processes (fine-tune, convert, measure), by its key."""
         return self.logs / f"{key.replace('/', '__')}.log"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's
+        return True
+    return True
 
 
 def digest(obj: Any) -> str:

@@ -4,6 +4,7 @@ overlap (one measuring cell per machine), both finish, and every cell is stored 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -89,3 +90,18 @@ def test_two_runs_on_two_stores_time_one_cell_at_a_time(project: Path):
         assert sorted(map(key, records)) == sorted(CELLS) and all(r["status"] == "ok" for r in records)
         both += records
     assert_never_overlapping(both)
+
+
+def test_job_files_a_killed_run_left_are_swept_by_the_next_and_a_live_processes_stay(project: Path):
+    killed = popen_cli(project, "run", "m.yaml", "--model", "tiny")
+    jobs = project / "ws" / "jobs"
+    wait_for(lambda: list(jobs.rglob("session-*.pickle")), "the run's sessions loading", timeout_s=300)
+    killed.kill()  # SIGKILL: nothing of it cleans up; its children end with it
+    killed.communicate(timeout=60)
+    left = [p for p in jobs.rglob("*") if p.is_file()]
+    assert left
+    live = left[0].with_name(f"job-{os.getpid()}-1.pickle")  # this test's process, alive: another run's
+    live.write_bytes(b"")
+    out = cli(project, "run", "m.yaml", "--model", "tiny")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert [p for p in jobs.rglob("*") if p.is_file()] == [live]

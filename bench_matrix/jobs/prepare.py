@@ -11,22 +11,23 @@ from typing import Any
 import numpy as np
 
 from bench_matrix import data
+from bench_matrix.backend import Backend
 from bench_matrix.cell import NO_STEP
 from bench_matrix.errors import UserError
 from bench_matrix.images import layout_note
 from bench_matrix.phases import phase
-from bench_matrix.jobs import DatasetJob, FinetuneJob, ModelJob
+from bench_matrix.jobs import DatasetJob, FinetuneJob, ModelJob, ReferenceJob
 from bench_matrix.jobs.artifact import ensure_artifact, predict_all
 from bench_matrix.jobs.keys import builtin_key, finetune_key, model_key
-from bench_matrix.jobs.results import Finetuned, PreparedData, PreparedModel
-from bench_matrix.matrix.spec import ModelSpec
+from bench_matrix.jobs.results import Converted, Finetuned, PreparedData, PreparedModel, Reference
+from bench_matrix.matrix.spec import ModelSpec, Settings
 from bench_matrix.measure import env as environment
 from bench_matrix.measure.metrics import evaluate, non_finite_reason
 from bench_matrix.registry import load_backend
 from bench_matrix.sources import SourceModel
 from bench_matrix.sources.code import model_code
 from bench_matrix.tensors import TensorSpec, binding_problem, bind, take
-from bench_matrix.workspace import Workspace, file_sha256
+from bench_matrix.workspace import Workspace, digest, file_sha256
 
 
 def prepare_dataset(job: DatasetJob) -> PreparedData:
@@ -57,9 +58,7 @@ def prepare_model(job: ModelJob) -> PreparedModel:
     baseline = load_backend(job.baseline.backend)
     converted = ensure_artifact(ws, baseline, source, NO_STEP, "fp32", "cpu", prepared, spec.layout, settings,
                                 {})
-    session = baseline.load(converted.model, converted.manifest["meta"], "cpu", "fp32", settings.threads)
-    x, y = data.load_split(prepared.directory, "test", prepared.preprocess, spec.layout, settings.eval_samples)
-    outputs = predict_all(session, bind(x, inputs), settings.batch_size)
+    outputs, y = _baseline_outputs(baseline, converted, inputs, prepared, spec.layout, settings)
     if reason := non_finite_reason(outputs):
         raise UserError(f"model {spec.name}: its fp32 outputs on the test split are not finite ({reason})")
     _check_outputs(spec, job.task, outputs, y, prepared.info)
@@ -74,6 +73,31 @@ def prepare_model(job: ModelJob) -> PreparedModel:
         info["test_mse"] = info["test_metrics"]["mse"]
     (out / "prepared.json").write_text(json.dumps({"info": info}, indent=1))
     return PreparedModel(source, info, out / "reference.npz")
+
+
+def reference_outputs(job: ReferenceJob) -> Reference:
+    """The baseline artifact's fp32 outputs on the test split, kept by the artifact's folder and the data."""
+    phase("reference")
+    settings = job.settings
+    out = job.workspace.references(digest([str(job.converted.directory), job.data.fingerprint, job.layout,
+                                           settings.eval_samples, settings.batch_size]))
+    if not (out / "reference.npz").is_file():
+        outputs, _ = _baseline_outputs(load_backend(job.baseline.backend), job.converted, job.source.inputs,
+                                       job.data, job.layout, settings)
+        out.mkdir(parents=True, exist_ok=True)
+        partial = out / f"reference.tmp{os.getpid()}.npz"
+        np.savez(partial, *outputs)
+        partial.replace(out / "reference.npz")
+    return Reference(out / "reference.npz")
+
+
+def _baseline_outputs(baseline: Backend, converted: Converted, inputs: tuple[TensorSpec, ...],
+                      prepared: PreparedData, layout: str, settings: Settings
+                      ) -> tuple[list[np.ndarray], np.ndarray | None]:
+    """The baseline artifact's outputs on the test split (settings.eval_samples of it), and its labels."""
+    session = baseline.load(converted.model, converted.manifest["meta"], "cpu", "fp32", settings.threads)
+    x, y = data.load_split(prepared.directory, "test", prepared.preprocess, layout, settings.eval_samples)
+    return predict_all(session, bind(x, inputs), settings.batch_size), y
 
 
 def _chance(info: dict[str, Any]) -> dict[str, Any]:
