@@ -232,7 +232,6 @@ def test_folder_dataset_checks(tmp_path):
     ("warmup_iterations: 100000000", "settings.warmup_iterations: must be <= 1000000, got 100000000"),
     ("min_rounds: 1", "settings.min_rounds: must be >= 2, got 1"),
     ("ci_target: 0", "settings.ci_target: must be > 0, got 0"),
-    ("passes: 2", "settings.passes: retired: timing is interleaved rounds now; set window_s, min_rounds"),
     ("seed: -1", "settings.seed: must be >= 0, got -1"),
     ("threads: true", "settings.threads: expected integer, got bool True"),
 ])

@@ -187,13 +187,20 @@ def suggest(word: str, allowed: list[str] | tuple[str, ...]) -> str:
 
 
 class Located:
-    """Collects problems as 'file:line: key: message', the line of the nearest key path the file has."""
+    """Collects problems and warnings as 'file:line: key: message', the line of the nearest key path the file
+    has."""
 
     def __init__(self, path: Path, lines: dict[Path_, int]):
-        self.path, self.lines, self.problems = path, lines, []
+        self.path, self.lines, self.problems, self.warnings = path, lines, [], []
 
     def add(self, at: Path_, message: str) -> None:
+        self.problems.append(self.located(at, message))
+
+    def warn(self, at: Path_, message: str) -> None:
+        self.warnings.append(self.located(at, message))
+
+    def located(self, at: Path_, message: str) -> str:
         probe = at
         while probe not in self.lines and probe:
             probe = probe[:-1]
-        self.problems.append(f"{self.path}:{self.lines.get(probe, 1)}: {format_path(at)}: {message}")
+        return f"{self.path}:{self.lines.get(probe, 1)}: {format_path(at)}: {message}"
