@@ -176,7 +176,19 @@ def _load(args: argparse.Namespace):
     from bench_matrix.registry import available
     from bench_matrix.workspace import Workspace
 
-    return load_matrix(args.matrix, backends=list(available())), Workspace(args.workspace)
+    matrix = load_matrix(args.matrix, backends=list(available()))
+    warn(matrix.warnings)
+    return matrix, Workspace(args.workspace)
+
+
+def warn(warnings: tuple[str, ...]) -> None:
+    """A matrix's warnings (retired keys it still uses), on stderr."""
+    from rich.console import Console
+
+    console = Console(stderr=True)
+    for warning in warnings:
+        console.print("[yellow]warning:[/] ", end="", highlight=False)
+        console.print(warning, markup=False, highlight=False, soft_wrap=True)
 
 
 def _run(args: argparse.Namespace, console) -> int:

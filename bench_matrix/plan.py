@@ -18,7 +18,7 @@ from bench_matrix.jobs import ProbeJob
 from bench_matrix.jobs.results import Probe
 from bench_matrix.matrix.expand import combinations, judge, training_key, verdict_key
 from bench_matrix.matrix.spec import DatasetSpec, Matrix, ModelSpec
-from bench_matrix.matrix.yamlpos import format_path
+from bench_matrix.matrix.yamlpos import Located
 from bench_matrix.measure import env as environment
 from bench_matrix.registry import available
 from bench_matrix.scenarios import selectable
@@ -135,8 +135,8 @@ def _check_models(matrix: Matrix, models: dict[str, ModelPlan], probe: Probe) ->
     found = (_model_problem(matrix, i, models[m.name], probe) for i, m in enumerate(matrix.models))
     problems = list(dict.fromkeys(problem for problem in found if problem))  # a shared dataset's: once
     if problems:
-        raise MatrixError([f"{matrix.path}:{_line(matrix, at)}: {format_path(at)}: {message}"
-                           for at, message in problems])
+        report = Located(matrix.path, matrix.lines)
+        raise MatrixError([report.located(at, message) for at, message in problems])
 
 
 def _model_problem(matrix: Matrix, i: int, planned: ModelPlan, probe: Probe) -> tuple[tuple, str] | None:
@@ -169,12 +169,6 @@ def _forward_problem(model: ModelSpec, names: list[str], probe: Probe) -> str | 
     if not params or not names:
         return None
     return call_problem(model.factory or "", params, names, bool(model.inputs))
-
-
-def _line(matrix: Matrix, at: tuple) -> int:
-    while at and at not in matrix.lines:
-        at = at[:-1]
-    return matrix.lines.get(at, 1)
 
 
 class Fingerprints:

@@ -193,7 +193,6 @@ def after_line_1(opening: str) -> str:
 TAIL = "dataset:" + render().split("dataset:", 1)[1]
 SYNTAX = {  # name -> (matrix text, what the message names besides the file)
     "unclosed_flow_mapping": (after_line_1("  - {name: tiny, framework: onnx"), ("line 2", ":2:")),
-    "unclosed_quote": (after_line_1('  - name: "tiny'), ("line 2", ":2:")),
     "tab_indentation": ("models:\n\t- {name: tiny}\n", (":2:", "line 2")),
     "mapping_in_scalar": ("models: a: b\n", (":1:", "line 1")),
     "two_documents": (render() + "---\n" + render(), ()), "empty_file": ("", ()),
@@ -208,6 +207,26 @@ SYNTAX = {  # name -> (matrix text, what the message names besides the file)
     "binary_tag": (render().replace("name: tiny", "name: !!binary aGVsbG8="), ("models[0].name",)),
     "set_tag": (render().replace("strategy:\n  - none", "strategy: !!set {none}"), ("axes.strategy",)),
     "custom_tag": ("include: !include other.yaml\n" + render(), ("include",)),
+}
+def nested(levels: int, value: str) -> str:
+    """`deep:` holding `levels` nested block mappings, the last one's `a:` holding `value`."""
+    return "deep:\n" + "".join(" " * i + " a:\n" for i in range(levels - 1)) + " " * levels + f"a: {value}\n"
+
+
+LINES = len(render().splitlines())
+ONE_MODEL = "- name: tiny\n  framework: onnx\n  file: tiny.onnx\n"
+LOCATED = {  # name -> (matrix text, the line its message must start at, what else it names)
+    "unclosed_quote": (after_line_1('  - name: "tiny'), 2, "column 11"),
+    "unclosed_quote_at_the_end": (render() + "description: 'never closed\n", LINES + 1, "quoted scalar"),
+    "deep_block_nesting": (render() + nested(60, "1"), LINES + 51, "limit 50"),
+    "deep_through_an_alias": ("anchor: &d " + "[" * 30 + "]" * 30 + "\n" + render() + nested(25, "*d"),
+                              LINES + 27, "limit 50"),
+    "alias_in_a_list": ("description: &p int4\n" + render().replace("  - fp32\n", "  - fp32\n  - *p\n"), 19,
+                        "axes.precision[1]: 'int4' is not allowed"),
+    "alias_of_a_model": (render().replace(ONE_MODEL, "- &m {name: tiny, framework: onnx, file: tiny.onnx}\n"
+                                                     "- *m\n"), 3, "line 2"),
+    "recursive_alias_on_its_own_line": ("axes: &a\n  strategy:\n  - *a\n" + render().split("axes:")[0], 3,
+                                        "recursive alias"),
 }
 TYPES = {  # name -> (key path, raw YAML value, what the message names)
     "models_mapping": ("models", "{}", "models"), "models_string": ("models", "tiny", "models"),
@@ -285,6 +304,8 @@ def text_cases() -> list[Case]:
     """Syntax errors, wrong types, typos, impossible combinations, encodings and python tags."""
     cases = [Case(f"syntax:{name}", lambda _p, t=text: t, (names,) if names else ())
              for name, (text, names) in SYNTAX.items()]
+    cases += [Case(f"located:{name}", lambda _p, t=text: t, ((rf"re:fuzz\.yaml:{line}: ",), (names,)))
+              for name, (text, line, names) in LOCATED.items()]
     for name, (dotted, raw, names) in TYPES.items():
         top_level = dotted.split(".")[0] not in BASE
         text = render() + f"{dotted}: {raw}\n" if top_level else render((), raw, key_path(dotted))
