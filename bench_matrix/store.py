@@ -325,8 +325,8 @@ def no_room(error: sqlite3.Error, folder: Path) -> str | None:
         return None
     free = shutil.disk_usage(folder).free / 1e6
     return (f"the disk holding {folder} {why} ({free:.0f} MB free); the store is intact (a write lands whole "
-            f"or not at all): free space there, or choose a results file on another disk (--results), and run "
-            f"again: finished cells are kept")
+            f"or not at all): free space there, or choose a results file on another disk (--results), "
+            f"and run again: finished cells are kept")
 
 
 def _trial_write(folder: Path) -> str | None:

@@ -131,4 +131,5 @@ def test_each_side_is_scored_against_its_own_baseline(onnx_project: Path) -> Non
         (cell,) = result["cells"]
         accuracy = cell["metrics"]["accuracy"]
         assert accuracy["name"] == "cosine_similarity", accuracy
-        assert accuracy["base"] == pytest.approx(1, abs=1e-6) and accuracy["new"] == pytest.approx(1, abs=1e-6)
+        assert accuracy["base"] == pytest.approx(1, abs=1e-6), accuracy
+        assert accuracy["new"] == pytest.approx(1, abs=1e-6), accuracy

@@ -81,7 +81,8 @@ def test_unknown_keys_are_not_told_to_use_a_retired_one(tmp_path):
 def test_plan_and_run_of_an_old_matrix_work_and_warn_once(onnx_project):
     settings = FAST_SETTINGS.replace("timing_budget_s: 0.05", "max_time_s: 0.05, min_time_s: 1.5, passes: 1, "
                                      "ci_rel_width: 0.5")
-    (onnx_project / "m.yaml").write_text(onnx_matrix_text(["tiny"], ["fp32"]).replace(FAST_SETTINGS, settings))
+    matrix = onnx_matrix_text(["tiny"], ["fp32"]).replace(FAST_SETTINGS, settings)
+    (onnx_project / "m.yaml").write_text(matrix)
     for command in ("plan", "run"):
         done = cli(onnx_project, command, "m.yaml")
         assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
