@@ -155,12 +155,19 @@ def _model_problem(matrix: Matrix, i: int, planned: ModelPlan, probe: Probe) -> 
             unfit := binding_problem(described, planned.inputs)):
         problem = unfit + layout_note(data.images_read(planned.dataset, planned.as_is), m.layout)
     if problem:
-        return at + ("inputs",) if m.inputs else at, f"model {m.name}: {problem}"
+        culprits = f"model {m.name} ({planned.described}){_with_data(matrix, planned.dataset)}"
+        return at + ("inputs",) if m.inputs else at, f"{culprits}: {problem}"
     fixed = probe.batches.get(str(m.file)) if m.file else None
     if fixed and (problem := batch_problem(relative(matrix, m.file), m.source_format, fixed,
                                            matrix.settings.batch_size)):
         return at, f"model {m.name}: {problem}"
     return None
+
+
+def _with_data(matrix: Matrix, dataset: DatasetSpec) -> str:
+    """' with data.npz': the data's files as seen from the matrix's folder; '' for built-in or synthetic
+    data."""
+    return f" with {', '.join(relative(matrix, path) for path in dataset.paths)}" if dataset.paths else ""
 
 
 def _forward_problem(model: ModelSpec, names: list[str], probe: Probe) -> str | None:

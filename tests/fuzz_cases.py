@@ -228,6 +228,20 @@ LOCATED = {  # name -> (matrix text, the line its message must start at, what el
     "recursive_alias_on_its_own_line": ("axes: &a\n  strategy:\n  - *a\n" + render().split("axes:")[0], 3,
                                         "recursive alias"),
 }
+UNFIT = {  # name -> (the npz's x per sample, the model file): data the model's input cannot take
+    "npz_rank_too_low": ((16,), "tiny.onnx"), "npz_rank_too_high": ((2, 3, 16, 16), "tiny.onnx"),
+    "onnx_input_mismatch": ((3, 8, 8), "bad.onnx"),
+}
+
+
+def unfit(project: Path, name: str) -> str:
+    """`name`.npz with x of the case's shape, and its model file (a copy of tiny.onnx): the matrix of both."""
+    shape, model = UNFIT[name]
+    np.savez(project / f"{name}.npz", x=np.zeros((48, *shape), np.float32), y=np.zeros((48, 2), np.float32))
+    (project / model).write_bytes(onnx_model())
+    return render(((("dataset", "npz"), f"{name}.npz"), (("models", 0, "file"), model)))
+
+
 TYPES = {  # name -> (key path, raw YAML value, what the message names)
     "models_mapping": ("models", "{}", "models"), "models_string": ("models", "tiny", "models"),
     "models_item_int": ("models", "[5]", "models[0]"), "models_item_list": ("models", "[[]]", "models[0]"),
@@ -304,6 +318,8 @@ def text_cases() -> list[Case]:
     """Syntax errors, wrong types, typos, impossible combinations, encodings and python tags."""
     cases = [Case(f"syntax:{name}", lambda _p, t=text: t, (names,) if names else ())
              for name, (text, names) in SYNTAX.items()]
+    cases += [Case(f"unfit:{name}", lambda p, n=name: unfit(p, n),
+                   ((f"{name}.npz",), (model,), ("models[0]",))) for name, (_shape, model) in UNFIT.items()]
     cases += [Case(f"located:{name}", lambda _p, t=text: t, ((rf"re:fuzz\.yaml:{line}: ",), (names,)))
               for name, (text, line, names) in LOCATED.items()]
     for name, (dotted, raw, names) in TYPES.items():
