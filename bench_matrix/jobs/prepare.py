@@ -58,7 +58,7 @@ def prepare_model(job: ModelJob) -> PreparedModel:
     baseline = load_backend(job.baseline.backend)
     converted = ensure_artifact(ws, baseline, source, NO_STEP, "fp32", "cpu", prepared, spec.layout, settings,
                                 {})
-    outputs, y = _baseline_outputs(baseline, converted, inputs, prepared, spec.layout, settings)
+    outputs, y = _baseline_outputs(baseline, converted, source, inputs, prepared, spec.layout, settings)
     if reason := non_finite_reason(outputs):
         raise UserError(f"model {spec.name}: its fp32 outputs on the test split are not finite ({reason})")
     _check_outputs(spec, job.task, outputs, y, prepared.info)
@@ -82,8 +82,8 @@ def reference_outputs(job: ReferenceJob) -> Reference:
     out = job.workspace.references(digest([str(job.converted.directory), job.data.fingerprint, job.layout,
                                            settings.eval_samples, settings.batch_size]))
     if not (out / "reference.npz").is_file():
-        outputs, _ = _baseline_outputs(load_backend(job.baseline.backend), job.converted, job.source.inputs,
-                                       job.data, job.layout, settings)
+        outputs, _ = _baseline_outputs(load_backend(job.baseline.backend), job.converted, job.source,
+                                       job.source.inputs, job.data, job.layout, settings)
         out.mkdir(parents=True, exist_ok=True)
         partial = out / f"reference.tmp{os.getpid()}.npz"
         np.savez(partial, *outputs)
@@ -91,11 +91,15 @@ def reference_outputs(job: ReferenceJob) -> Reference:
     return Reference(out / "reference.npz")
 
 
-def _baseline_outputs(baseline: Backend, converted: Converted, inputs: tuple[TensorSpec, ...],
-                      prepared: PreparedData, layout: str, settings: Settings
+def _baseline_outputs(baseline: Backend, converted: Converted, source: SourceModel,
+                      inputs: tuple[TensorSpec, ...], prepared: PreparedData, layout: str, settings: Settings
                       ) -> tuple[list[np.ndarray], np.ndarray | None]:
     """The baseline artifact's outputs on the test split (settings.eval_samples of it), and its labels."""
-    session = baseline.load(converted.model, converted.manifest["meta"], "cpu", "fp32", settings.threads)
+    try:
+        session = baseline.load(converted.model, converted.manifest["meta"], "cpu", "fp32", settings.threads)
+    except Exception as exc:  # e.g. an operator of a custom domain the runtime does not have
+        said = str(exc).replace(str(converted.model), "its converted copy")
+        raise RuntimeError(f"{source.origin or source.path}: {baseline.name} cannot load it: {said}") from exc
     x, y = data.load_split(prepared.directory, "test", prepared.preprocess, layout, settings.eval_samples)
     return predict_all(session, bind(x, inputs), settings.batch_size), y
 
