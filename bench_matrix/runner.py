@@ -80,7 +80,7 @@ class Runner:
         self.counts = {"ok": 0, "skipped": 0, "failed": 0,
                        "cached": len([p for p in chosen if p.state == "run"]) - len(todo)}
         begin = time.monotonic()
-        self.ws.sweep_jobs()
+        self.ws.sweep()
         run = self.store.begin_run(str(self.matrix.path), self.host, environment.run_versions(), self.label,
                                    _now())
         self.run_id = run.id
@@ -92,7 +92,7 @@ class Runner:
             wall_s = round(time.monotonic() - begin, 1)
             summary = {"wall_s": wall_s, "counts": self.counts, "completed": completed}
             self.store.end_run(run.id, _now(), {**summary, **self._shard_summary()})
-            self.ws.sweep_jobs()
+            self.ws.sweep()
         return self.counts
 
     def _shard_summary(self) -> dict[str, str]:

@@ -5,10 +5,13 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
+from bench_matrix.measure.env import host_name
 from bench_matrix.measure.machine_lock import LOCK_FILE
 from conftest import FAST_SETTINGS, cli, onnx_matrix_text, popen_cli
 from lock_helpers import flock_waiters, release, start_holder
@@ -105,3 +108,21 @@ def test_job_files_a_killed_run_left_are_swept_by_the_next_and_a_live_processes_
     out = cli(project, "run", "m.yaml", "--model", "tiny")
     assert out.returncode == 0, out.stdout + out.stderr
     assert [p for p in jobs.rglob("*") if p.is_file()] == [live]
+
+
+def test_partial_files_of_an_ended_process_are_swept_by_the_next_run_and_a_live_processes_stay(project: Path):
+    ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                           text=True, check=True)
+    dead = int(ended.stdout)  # a conversion killed mid-write: its process is gone
+    partials = project / "ws" / "tmp" / host_name()
+    stale = [partials / f"partial-{dead}-0-0123abcd", partials / f"partial-{dead}-1-fp32.onnx"]
+    (stale[0] / "model").mkdir(parents=True)
+    (stale[0] / "model" / "model.onnx").write_bytes(b"\0" * 100)
+    stale[1].write_bytes(b"\0" * 100)
+    live = partials / f"partial-{os.getpid()}-0-fp32.onnx"  # this test's process, alive: another run's
+    live.write_bytes(b"")
+    out = cli(project, "run", "m.yaml", "--model", "tiny")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert list(partials.iterdir()) == [live]  # the stale ones and the run's own are gone
+    beside = [p for p in (project / "ws" / "cache").rglob("*") if "tmp" in p.name or "partial" in p.name]
+    assert not beside  # nothing was written in cache/ under a temporary name
