@@ -4,7 +4,6 @@ preprocess once, split disjointly, cache one array per split and input."""
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
@@ -85,9 +84,8 @@ def prepare(spec: DatasetSpec, workspace: Workspace, inputs: Sequence[TensorSpec
     raw = _read(spec, inputs, as_is)
     ranges, labels = _checked(raw, spec, as_is)
     index = assign_splits(count(raw.inputs), raw.groups, spec.split, spec.seed, source(spec))
-    building = out.with_name(f"{out.name}.building-{os.getpid()}")  # this process's, renamed when complete
-    shutil.rmtree(building, ignore_errors=True)
-    building.mkdir(parents=True)
+    building = workspace.partial(out)  # this process's, renamed when complete
+    building.mkdir()
     for split, rows in index.items():
         for name, array in raw.inputs.items():
             np.save(building / split_file(split, name), array[rows])

@@ -73,6 +73,13 @@ class RunProgress:
         self._progress.advance(self._task)
         self._progress.refresh()
 
+    def already_stored(self, cell: Cell) -> None:
+        """A cell another run stored while this one prepared it: said above the bar, and counted done."""
+        self._progress.console.print(f"[dim]=[/] {escape(f'{cell.model} · {cell.label}')}: already stored "
+                                     f"(measured by another run meanwhile)")
+        self._progress.advance(self._task)
+        self._progress.refresh()
+
     def skipped(self, records: list[CellRecord]) -> None:
         """One line per distinct reason, naming the backends and targets it concerns."""
         groups: dict[str, list[Cell]] = {}

@@ -15,7 +15,7 @@ from bench_matrix.jobs import MeasureJob, ReferenceJob, RoundsJob
 from bench_matrix.jobs.results import Converted, Measured, PreparedData
 from bench_matrix.plan import ModelPlan, Plan
 from bench_matrix.progress import RunProgress
-from bench_matrix.runner import PREPARE_TIMEOUT_S, Measuring, Ready, Runner
+from bench_matrix.runner import PREPARE_TIMEOUT_S, Converting, Measuring, Ready, Runner
 from bench_matrix.store import CellRecord
 from bench_matrix.workspace import Workspace
 
@@ -127,6 +127,10 @@ class Remeasure(Runner):
                              self.matrix.metrics, side=side)
             measuring.append(Measuring(p, job, "", None))
         self._settled(p, measuring)
+
+    def _claim(self, converting: Converting) -> None:
+        """A comparison stores nothing: its twins are measured without a store's lock."""
+        self._submit_rounds(converting.ready.model, converting.measuring)
 
     def _rounds(self, group: list[Measuring], baseline: Any) -> RoundsJob:
         """Twins side by side (so a memory budget seldom parts them), each new one paired against its base."""

@@ -84,8 +84,7 @@ def reference_outputs(job: ReferenceJob) -> Reference:
     if not (out / "reference.npz").is_file():
         outputs, _ = _baseline_outputs(load_backend(job.baseline.backend), job.converted, job.source,
                                        job.source.inputs, job.data, job.layout, settings)
-        out.mkdir(parents=True, exist_ok=True)
-        partial = out / f"reference.tmp{os.getpid()}.npz"
+        partial = job.workspace.partial(out / "reference.npz")
         np.savez(partial, *outputs)
         partial.replace(out / "reference.npz")
     return Reference(out / "reference.npz")
@@ -145,8 +144,7 @@ def finetune(job: FinetuneJob) -> Finetuned:
     final = ws.finetuned(key)
     if not (final / "finetuned.json").is_file():
         phase("finetune")
-        tmp = final.with_name(f"{final.name}.tmp{os.getpid()}")
-        shutil.rmtree(tmp, ignore_errors=True)
+        tmp = ws.partial(final)
         (tmp / "model").mkdir(parents=True)
 
         def train(fraction: float) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -205,8 +203,10 @@ def _trained_builtin(spec: ModelSpec, ws: Workspace, prepared: PreparedData, see
         x, y = data.load_split(prepared.directory, "train", prepared.preprocess, spec.layout)
         x = bind(x, inputs)
         threads = len(os.sched_getaffinity(0))
-        facts = (train_keras(spec.builtin, x, y, spec.training, seed, model_file, threads) if keras else
-                 train_torch(FACTORIES[spec.builtin], x, y, spec.training, seed, model_file, threads))
+        partial = ws.partial(model_file)
+        facts = (train_keras(spec.builtin, x, y, spec.training, seed, partial, threads) if keras else
+                 train_torch(FACTORIES[spec.builtin], x, y, spec.training, seed, partial, threads))
+        partial.replace(model_file)
         facts_file.write_text(json.dumps(facts))
     facts = json.loads(facts_file.read_text())
     if keras:
