@@ -1,4 +1,4 @@
-"""Inputs with open axes (a dynamic image size): the shapes timed are said by init, plan and run,
+"""Inputs with open axes (a dynamic image size): the shapes timed are said by init, plan, run and the report,
 and a warning names each input whose open axes synthetic data gives the default length."""
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ def warnings(stderr: str) -> list[str]:
 
 
 @pytest.mark.slow
-def test_open_axes_are_said_by_init_plan_and_run(tmp_path):
+def test_open_axes_are_said_by_init_plan_run_and_report(tmp_path):
     dyn = project(tmp_path) / "dyn.onnx"
     text = init(tmp_path, "dyn.onnx").read_text()
     assert "# Synthetic inputs are timed at X 3×8×8 float32 per sample.\n" in text
@@ -49,6 +49,9 @@ def test_open_axes_are_said_by_init_plan_and_run(tmp_path):
     assert ran.returncode == 0 and SAID in ran.stdout and "done: 1 ok" in ran.stdout, ran.stdout + ran.stderr
     assert warnings(ran.stderr) == [
         f"warning: model dyn ({dyn}): {WARNED}--input X:3,<length>,<length>:float32 {DOCS}"]
+    assert cli(tmp_path, "report", "--format", "md", "--out", "reports").returncode == 0
+    assert ("· inputs timed at X 3×8×8 float32 per sample (X: axes 2 and 3 open in the model, given "
+            "synthetic data's default length)") in (tmp_path / "reports" / "dyn.md").read_text()
 
 
 @pytest.mark.parametrize("model, options, said", [
