@@ -198,12 +198,13 @@ def _run(args: argparse.Namespace, console) -> int:
     from bench_matrix.executors.local import probe
     from bench_matrix.matrix.require import parse_require
     from bench_matrix.plan import resolve
+    from bench_matrix.plan_view import show_inputs
     from bench_matrix.runner import Runner
     from bench_matrix.selection import Shard
     from bench_matrix.store import ResultStore
 
     shard = Shard.parse(args.shard) if args.shard is not None else Shard()
-    args.matrix = matrix_of(args, console)
+    given, args.matrix = args.matrix, matrix_of(args, console)
     matrix, ws = _load(args)
     filters, overrides = _selected(args), parse_require(args.require)
     if args.results is None:
@@ -219,6 +220,7 @@ def _run(args: argparse.Namespace, console) -> int:
         with console.status(connecting) if connecting else contextlib.nullcontext():
             executor = open_executor(args.executor, ws, args.address, ssh_options(args, args.device))
         plan = resolve(matrix, ws, probe)
+        show_inputs(console, plan, filters, automatic=args.matrix != given)
         counts = Runner(plan, ws, store, executor, console, args.label, shard).run(filters, args.force)
     finally:
         store.close()

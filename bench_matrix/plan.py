@@ -25,7 +25,7 @@ from bench_matrix.scenarios import selectable
 from bench_matrix.sources.code import model_code
 from bench_matrix.sources.forward_call import call_problem
 from bench_matrix.sources.model_io import batch_problem
-from bench_matrix.tensors import TensorSpec, binding_problem
+from bench_matrix.tensors import TensorSpec, binding_problem, concrete, fed, open_axes
 from bench_matrix.workspace import Workspace, digest, file_sha256, tree_sha256
 
 
@@ -111,6 +111,22 @@ def _model_plan(matrix: Matrix, model: ModelSpec, read: dict[str, tuple[TensorSp
                      _described(matrix, model), data.model_shaped(dataset, inputs, model.layout))
 
 
+def timed_inputs(planned: ModelPlan) -> tuple[TensorSpec, ...] | None:
+    """The model's inputs as timed: the data's per-sample shapes, or for synthetic data the inputs' own with
+    each open axis given OPEN_LENGTH; None where only preparing the data tells (folders of recordings)."""
+    if planned.dataset.kind == "synthetic":
+        return tuple(replace(spec, shape=concrete(spec.shape)) for spec in planned.inputs or ())
+    described = data.describe(planned.dataset, planned.spec.layout, planned.as_is)
+    return None if described is None else fed(described, planned.inputs or ())
+
+
+def defaulted(planned: ModelPlan) -> tuple[TensorSpec, ...]:
+    """The model's inputs with an open axis that synthetic data gives the default length (OPEN_LENGTH)."""
+    if planned.dataset.kind != "synthetic":
+        return ()
+    return tuple(spec for spec in planned.inputs or () if open_axes(spec))
+
+
 def _described(matrix: Matrix, model: ModelSpec) -> str:
     if model.builtin:
         return f"builtin {model.builtin} (trained on the dataset's training split)"
@@ -176,6 +192,13 @@ def _forward_problem(model: ModelSpec, names: list[str], probe: Probe) -> str | 
     if not params or not names:
         return None
     return call_problem(model.factory or "", params, names, bool(model.inputs))
+
+
+def matrix_line(matrix: Matrix, at: tuple) -> int:
+    """The matrix file's line of the key at `at` (or of the nearest key holding it)."""
+    while at and at not in matrix.lines:
+        at = at[:-1]
+    return matrix.lines.get(at, 1)
 
 
 class Fingerprints:

@@ -43,8 +43,9 @@ def markers(project: Path) -> Path:
     return project / "markers"
 
 
-def onnx_model(location: str | None = None) -> bytes:
-    """A tiny ONNX model, (N,3,16,16) -> (N,2); with `location`, its weights are external data there."""
+def onnx_model(location: str | None = None, dims: tuple = ("N", 3, 16, 16)) -> bytes:
+    """A tiny ONNX model, (N,3,16,16) -> (N,2), its input's axes `dims` (a name or None: open); with
+    `location`, its weights are external data there."""
     from onnx import TensorProto, helper, numpy_helper
 
     weights = numpy_helper.from_array(np.full((3, 2), 0.5, np.float32), "W")
@@ -57,7 +58,7 @@ def onnx_model(location: str | None = None) -> bytes:
     nodes = [helper.make_node("ReduceMean", ["X"], ["M"], axes=[2, 3], keepdims=0),
              helper.make_node("MatMul", ["M", "W"], ["Y"])]
     graph = helper.make_graph(nodes, "tiny",
-                              [helper.make_tensor_value_info("X", TensorProto.FLOAT, ["N", 3, 16, 16])],
+                              [helper.make_tensor_value_info("X", TensorProto.FLOAT, list(dims))],
                               [helper.make_tensor_value_info("Y", TensorProto.FLOAT, ["N", 2])], [weights])
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
     return model.SerializeToString()

@@ -26,7 +26,7 @@ from bench_matrix.measure.metrics import evaluate, non_finite_reason
 from bench_matrix.registry import load_backend
 from bench_matrix.sources import SourceModel
 from bench_matrix.sources.code import model_code
-from bench_matrix.tensors import TensorSpec, binding_problem, bind, take
+from bench_matrix.tensors import TensorSpec, binding_problem, bind, fed, open_axes, take
 from bench_matrix.workspace import Workspace, digest, file_sha256
 
 
@@ -51,7 +51,7 @@ def prepare_model(job: ModelJob) -> PreparedModel:
     if (out / "prepared.json").is_file():  # paths are derived afresh: the workspace may be named otherwise now
         source, _ = _source(spec, ws, prepared, settings.seed, inputs)
         info = json.loads((out / "prepared.json").read_text())["info"]
-        return PreparedModel(source, info, out / "reference.npz")
+        return PreparedModel(source, {**info, **_timed(spec, prepared, inputs)}, out / "reference.npz")
     phase("prepare")
     _check_binding(spec, prepared, inputs)
     source, training = _source(spec, ws, prepared, settings.seed, inputs)
@@ -68,7 +68,7 @@ def prepare_model(job: ModelJob) -> PreparedModel:
             "sha256": source.sha256, "baseline_key": job.baseline.key, "task": job.task,
             "inputs": [i.to_dict() for i in inputs], "outputs": [list(o.shape[1:]) for o in outputs],
             "test_metrics": evaluate(job.task, outputs, y, None), "test_samples": int(len(outputs[0])),
-            "training": training, **_chance(prepared.info)}
+            "training": training, **_chance(prepared.info), **_timed(spec, prepared, inputs)}
     if job.task == "regression":
         info["test_mse"] = info["test_metrics"]["mse"]
     (out / "prepared.json").write_text(json.dumps({"info": info}, indent=1))
@@ -101,6 +101,16 @@ def _baseline_outputs(baseline: Backend, converted: Converted, source: SourceMod
         raise RuntimeError(f"{source.origin or source.path}: {baseline.name} cannot load it: {said}") from exc
     x, y = data.load_split(prepared.directory, "test", prepared.preprocess, layout, settings.eval_samples)
     return predict_all(session, bind(x, inputs), settings.batch_size), y
+
+
+def _timed(spec: ModelSpec, prepared: PreparedData, inputs: tuple[TensorSpec, ...]) -> dict[str, Any]:
+    """The shapes the inputs are timed at (the data's, per sample) and the open axes of each that synthetic
+    data gave the default length."""
+    given = {i.name: i for i in data.data_inputs(prepared.info, spec.layout)}
+    synthetic = prepared.info.get("kind") == "synthetic"
+    timed = [{"name": i.name, "shape": list(i.shape), "dtype": i.dtype} for i in fed(given, inputs)]
+    return {"timed_inputs": timed,
+            "defaulted_axes": {i.name: list(open_axes(i)) for i in inputs if synthetic and open_axes(i)}}
 
 
 def _chance(info: dict[str, Any]) -> dict[str, Any]:
