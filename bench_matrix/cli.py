@@ -75,11 +75,13 @@ def _parser() -> argparse.ArgumentParser:
     run.set_defaults(handler=_run)
 
     plan = sub.add_parser("plan", help="expand the matrix and show what run would do with each cell")
-    plan.add_argument("matrix", type=Path)
+    plan.add_argument("matrix", type=Path, help="a matrix .yaml, or a model file or SavedModel folder: the "
+                                                "automatic matrix `run` would run")
     plan.add_argument("--results", type=Path, help="mark cells already stored in this results file "
                                                    "(default: WORKSPACE/results.sqlite)")
     plan.add_argument("--all", action="store_true", dest="show_all",
                       help="list every combination that is not valid, one row each")
+    add_model_options(plan)
     _filters(plan)
     plan.set_defaults(handler=_plan)
 
@@ -238,13 +240,16 @@ def _run(args: argparse.Namespace, console) -> int:
 
 
 def _plan(args: argparse.Namespace, console) -> int:
+    from bench_matrix.cli_auto import matrix_of
     from bench_matrix.executors.local import probe
     from bench_matrix.plan import resolve
     from bench_matrix.plan_view import show_plan
 
+    given, args.matrix = args.matrix, matrix_of(args, console)
     matrix, ws = _load(args)
     filters = _selected(args)
-    show_plan(console, resolve(matrix, ws, probe), ws, filters, args.results, args.show_all)
+    show_plan(console, resolve(matrix, ws, probe), ws, filters, args.results, args.show_all,
+              automatic=args.matrix != given)
     return 0
 
 

@@ -27,8 +27,9 @@ STATE_STYLE = {"run": "[green]will run[/]", "stored": "[cyan]stored[/]", "skip":
 
 
 def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, results: Path | None,
-              show_all: bool = False) -> None:
-    """Cells that will run, are stored, or are skipped (why); then the combinations that are not valid (why)."""
+              show_all: bool = False, automatic: bool = False) -> None:
+    """Cells that will run, are stored, or are skipped (why); then the combinations that are not valid (why).
+    `automatic`: the matrix of a model file."""
     filters.check([p.cell for p in plan.cells])
     results = results or ws.results
     store = ResultStore(results, readonly=True) if results.is_file() else None
@@ -56,7 +57,7 @@ def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, res
                   f"{counts['invalid']} not valid, {plan.excluded} removed by exclude")
     for line in _slow(plan, [p for p in cells if p.state == "run"]):
         console.print(line, highlight=False, markup=False, soft_wrap=True)
-    show_inputs(console, plan, filters)
+    show_inputs(console, plan, filters, automatic)
     if store:
         store.close()
 

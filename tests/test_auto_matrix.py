@@ -143,6 +143,9 @@ def test_run_an_onnx_file_in_one_command(tmp_path):
     assert len(written) == 1 and written[0].read_text() == cli(tmp_path, "init", "tiny.onnx").stdout
     again = cli(tmp_path, "run", "tiny.onnx", *chosen)
     assert "0 ok" in again.stdout and "2 already stored" in again.stdout, again.stdout
+    planned = cli(tmp_path, "plan", "tiny.onnx", *chosen)  # the same automatic matrix, its cells stored
+    assert planned.returncode == 0 and "automatic matrix of " in planned.stdout, planned.stderr
+    assert re.search(r"0 will run, 2 already stored, 0 will be skipped", planned.stdout), planned.stdout
 
 
 @pytest.mark.slow
