@@ -107,7 +107,9 @@ def test_a_competitor_on_the_measuring_cpu_shows_as_other_processes_and_preempti
     assert seen.cpus == (CPU,) and seen.wall_s >= 1.0
     assert seen.own_cpu_s < 0.7 * seen.wall_s  # the scheduler shares the CPU about half and half (or worse)
     assert seen.other_share > Limits().other_share and "of the measuring CPU(s)" in seen.problem(Limits())
-    assert seen.preemptions_per_s > 40  # alone: about 10 a second; sharing the CPU: time slices of a few ms
+    # alone: about 10 preemptions a second of its own CPU time; sharing the CPU, time slices of a few ms: over
+    # 40 a CPU second however many other processes share it too (per wall second it falls with their number)
+    assert seen.preemptions / seen.own_cpu_s > 40, seen
 
 
 def test_problem_names_each_figure_above_its_limit():
