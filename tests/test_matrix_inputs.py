@@ -115,7 +115,9 @@ def test_unreadable_matrix_files(tmp_path, capsys):
     pipe = tmp_path / "pipe.yaml"
     os.mkfifo(pipe)
     assert f"{pipe}: is a named pipe, not a regular file" in cli_error(capsys, "plan", str(pipe))
-    assert f"{tmp_path}: is a directory, not a regular file" in cli_error(capsys, "plan", str(tmp_path))
+    folder = cli_error(capsys, "plan", str(tmp_path))  # as `run`: a folder may be a SavedModel
+    assert f"{tmp_path}: is a folder without saved_model.pb; expected a model file" in folder
+    assert "or a matrix .yaml" in folder
     assert "/dev/zero: is a character device" in cli_error(capsys, "run", "/dev/zero")
     (tmp_path / "empty.yaml").write_text("")
     assert "empty.yaml: the file is empty" in cli_error(capsys, "plan", str(tmp_path / "empty.yaml"))
