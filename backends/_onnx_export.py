@@ -3,7 +3,7 @@ through tf2onnx), and which graph input each of the source's named inputs feeds.
 
 from __future__ import annotations
 
-import os
+import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -30,9 +30,9 @@ def fp32_model(request: ConvertRequest, tmp: Path) -> "onnx.ModelProto":
         return onnx.load(str(kept))
     model = _keras_to_onnx(request) if source.framework == "tensorflow" else _torch_to_onnx(request, tmp)
     if kept:
-        partial = kept.with_name(f"fp32.onnx.tmp{os.getpid()}")
+        partial = tmp / "shared-fp32.onnx"
         onnx.save(model, str(partial))
-        partial.replace(kept)
+        shutil.move(partial, kept)  # a rename where tmp is in the scratch folder: kept appears whole
     return model
 
 

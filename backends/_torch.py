@@ -110,8 +110,9 @@ def example_tensors(specs: Sequence[TensorSpec], device: str, dtype: "torch.dtyp
 
 def flat_module(module: "torch.nn.Module", example: tuple["torch.Tensor", ...]) -> tuple["torch.nn.Module", int]:
     """`module` itself when it returns one tensor, else a module returning its outputs as a flat tuple in
-    flat_outputs' order (dicts by sorted key), so that traces and exports see the order sessions fetch in; with
-    how many outputs it returns."""
+    flat_outputs' order (dicts by sorted key), so that traces and exports see the order sessions fetch in
+    (traced around a TorchScript module, which torch.onnx cannot trace inside a Python one); with how many
+    outputs it returns."""
     import torch
 
     with torch.no_grad():
@@ -129,6 +130,9 @@ def flat_module(module: "torch.nn.Module", example: tuple["torch.Tensor", ...]) 
 
     flat = FlatOutputs(module)
     flat.training = False  # set, not .eval(): a torch.export module refuses train() and eval()
+    if isinstance(module, torch.jit.ScriptModule):
+        with torch.no_grad():
+            flat = torch.jit.trace(flat, example)
     return flat, len(flat_outputs(outputs))
 
 

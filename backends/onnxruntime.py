@@ -71,7 +71,7 @@ class OnnxRuntimeBackend(Backend):
             raise ValueError(reason)
         out = request.out_dir / FILE
         engines = None
-        with tempfile.TemporaryDirectory(prefix="bench-matrix-ort-") as tmp:
+        with tempfile.TemporaryDirectory(prefix="bench-matrix-ort-", dir=request.scratch_dir) as tmp:
             model = fp32_model(request, Path(tmp))
             feeds, batch = graph_feeds(model, request.source)
             quantisation = None

@@ -70,7 +70,7 @@ class OpenVinoBackend(Backend):
             raise ValueError(reason)
         ov = openvino()
         quantisation = None
-        with tempfile.TemporaryDirectory(prefix="bench-matrix-ov-") as tmp:
+        with tempfile.TemporaryDirectory(prefix="bench-matrix-ov-", dir=request.scratch_dir) as tmp:
             model, feeds, batch = _fp32_model(request, Path(tmp))
             if step.kind == "ptq_static":
                 model, quantisation = quantise(model, request, feeds, batch)

@@ -74,7 +74,7 @@ class TFTRTBackend(Backend):
         meta: dict[str, Any] = {"precision_mode": mode, "strategy": step.kind, "built_batches": list(BUILD_BATCHES),
                                 "maximum_cached_engines": MAX_ENGINES,
                                 "max_workspace_size_bytes": trt.DEFAULT_TRT_MAX_WORKSPACE_SIZE_BYTES}
-        with tempfile.TemporaryDirectory(prefix="bench-matrix-tftrt-") as tmp:
+        with tempfile.TemporaryDirectory(prefix="bench-matrix-tftrt-", dir=request.scratch_dir) as tmp:
             saved = Path(tmp) / "saved_model"
             export_serving(request.source.load(), inputs, saved)
             converter = trt.TrtGraphConverterV2(input_saved_model_dir=str(saved), precision_mode=mode,

@@ -55,6 +55,10 @@ class ConvertRequest:
     # This backend's own options from the matrix (`backend_options`), validated against Backend.options;
     # whatever `load` needs of them goes into the returned metadata.
     options: dict[str, Any] = field(default_factory=dict)
+    # A folder of this conversion's own in the workspace for its temporary files (tempfile's dir=; None: the
+    # system's), removed when the conversion ends and, where it was killed, by the next run. A file for
+    # shared_dir is written here first and then moved there (shutil.move), never half-written there.
+    scratch_dir: Path | None = None
 
 
 class Session(ABC):

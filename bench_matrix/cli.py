@@ -75,11 +75,13 @@ def _parser() -> argparse.ArgumentParser:
     run.set_defaults(handler=_run)
 
     plan = sub.add_parser("plan", help="expand the matrix and show what run would do with each cell")
-    plan.add_argument("matrix", type=Path)
+    plan.add_argument("matrix", type=Path, help="a matrix .yaml, or a model file or SavedModel folder: the "
+                                                "automatic matrix `run` would run")
     plan.add_argument("--results", type=Path, help="mark cells already stored in this results file "
                                                    "(default: WORKSPACE/results.sqlite)")
     plan.add_argument("--all", action="store_true", dest="show_all",
                       help="list every combination that is not valid, one row each")
+    add_model_options(plan)
     _filters(plan)
     plan.set_defaults(handler=_plan)
 
@@ -176,7 +178,19 @@ def _load(args: argparse.Namespace):
     from bench_matrix.registry import available
     from bench_matrix.workspace import Workspace
 
-    return load_matrix(args.matrix, backends=list(available())), Workspace(args.workspace)
+    matrix = load_matrix(args.matrix, backends=list(available()))
+    warn(matrix.warnings)
+    return matrix, Workspace(args.workspace)
+
+
+def warn(warnings: tuple[str, ...]) -> None:
+    """A matrix's warnings (retired keys it still uses), on stderr."""
+    from rich.console import Console
+
+    console = Console(stderr=True)
+    for warning in warnings:
+        console.print("[yellow]warning:[/] ", end="", highlight=False)
+        console.print(warning, markup=False, highlight=False, soft_wrap=True)
 
 
 def _run(args: argparse.Namespace, console) -> int:
@@ -186,12 +200,13 @@ def _run(args: argparse.Namespace, console) -> int:
     from bench_matrix.executors.local import probe
     from bench_matrix.matrix.require import parse_require
     from bench_matrix.plan import resolve
+    from bench_matrix.plan_view import show_inputs
     from bench_matrix.runner import Runner
     from bench_matrix.selection import Shard
     from bench_matrix.store import ResultStore
 
     shard = Shard.parse(args.shard) if args.shard is not None else Shard()
-    args.matrix = matrix_of(args, console)
+    given, args.matrix = args.matrix, matrix_of(args, console)
     matrix, ws = _load(args)
     filters, overrides = _selected(args), parse_require(args.require)
     if args.results is None:
@@ -207,6 +222,7 @@ def _run(args: argparse.Namespace, console) -> int:
         with console.status(connecting) if connecting else contextlib.nullcontext():
             executor = open_executor(args.executor, ws, args.address, ssh_options(args, args.device))
         plan = resolve(matrix, ws, probe)
+        show_inputs(console, plan, filters, automatic=args.matrix != given)
         counts = Runner(plan, ws, store, executor, console, args.label, shard).run(filters, args.force)
     finally:
         store.close()
@@ -218,17 +234,22 @@ def _run(args: argparse.Namespace, console) -> int:
                                                           f"(`bench-matrix plan` says why)" if invalid else ""))
     print_run_verdict(args.results or ws.results, matrix, overrides, console)
     console.print("Next: [bold]bench-matrix report[/]", highlight=False)
-    return 0
+    for why in executor.lost().values():
+        console.print(f"{why}; the cells given to it failed", style="red", markup=False, highlight=False)
+    return 1 if executor.lost() else 0
 
 
 def _plan(args: argparse.Namespace, console) -> int:
+    from bench_matrix.cli_auto import matrix_of
     from bench_matrix.executors.local import probe
     from bench_matrix.plan import resolve
     from bench_matrix.plan_view import show_plan
 
+    given, args.matrix = args.matrix, matrix_of(args, console)
     matrix, ws = _load(args)
     filters = _selected(args)
-    show_plan(console, resolve(matrix, ws, probe), ws, filters, args.results, args.show_all)
+    show_plan(console, resolve(matrix, ws, probe), ws, filters, args.results, args.show_all,
+              automatic=args.matrix != given)
     return 0
 
 

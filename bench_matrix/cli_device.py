@@ -108,5 +108,5 @@ def _show_backends(console, link: Any, workspace: Path) -> int:
                     if "not supported" not in target_status(name, target, verdicts)]
         console.print(f"  [bold]{name}[/]: " + "; ".join(statuses), highlight=False, soft_wrap=True)
     console.print("[green]usable[/]: `bench-matrix run MATRIX --executor ssh --device "
-                  f"{link.device.name}` measures there", highlight=False)
+                  f"{link.device.argument}` measures there", highlight=False)
     return 0

@@ -31,6 +31,8 @@ def remeasured(base: Side, new: Side, matrix: Path | None, workspace: Path
     console = Console(stderr=True)  # stdout carries the comparison
     found = twins(base.records, new.records)
     source = load_matrix(matrix or _matrix_of(new), backends=list(available()))
+    for warning in source.warnings:
+        console.print(f"warning: {warning}", markup=False, highlight=False, soft_wrap=True)
     ws = Workspace(workspace)
     executor = open_executor("local", ws)
     try:

@@ -4,7 +4,6 @@ preprocess once, split disjointly, cache one array per split and input."""
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
@@ -14,7 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.data_readers import GROUPS, LABELS, npz_headers, read_npz, refuse_non_finite, require_file
+from bench_matrix.data_readers import GROUPS, LABELS, class_ids, npz_headers, read_npz, refuse_non_finite, \
+    require_file
 from bench_matrix.errors import UserError
 from bench_matrix.image_readers import first_class_image_size, read_class_folders, read_folders
 from bench_matrix.images import (GEOMETRIC, check_preprocess, geometric, geometric_shape, in_layout,
@@ -82,13 +82,10 @@ def prepare(spec: DatasetSpec, workspace: Workspace, inputs: Sequence[TensorSpec
     if (out / "info.json").is_file():
         return out, json.loads((out / "info.json").read_text())
     raw = _read(spec, inputs, as_is)
-    ranges = {name: value_range(raw.inputs[name]) for name in raw.images}
-    check_preprocess(spec.preprocess, raw.inputs, ranges, source(spec), as_is)
-    labels = _labels(raw, spec)
+    ranges, labels = _checked(raw, spec, as_is)
     index = assign_splits(count(raw.inputs), raw.groups, spec.split, spec.seed, source(spec))
-    building = out.with_name(f"{out.name}.building-{os.getpid()}")  # this process's, renamed when complete
-    shutil.rmtree(building, ignore_errors=True)
-    building.mkdir(parents=True)
+    building = workspace.partial(out)  # this process's, renamed when complete
+    building.mkdir()
     for split, rows in index.items():
         for name, array in raw.inputs.items():
             np.save(building / split_file(split, name), array[rows])
@@ -116,6 +113,25 @@ def _input_info(name: str, array: np.ndarray, ranges: dict[str, tuple[float, flo
     if name in ranges:
         info.update(range=list(ranges[name]), scale=pixel_scale(preprocess))
     return info
+
+
+def read_problem(spec: DatasetSpec, as_is: Sequence[str] = ()) -> str | None:
+    """Why `prepare` would refuse an .npz dataset (its arrays, labels, image preprocessing), or None: the same
+    checks, made at plan time."""
+    if spec.kind != "npz":
+        return None
+    try:
+        _checked(_read(spec, None, as_is), spec, as_is)
+    except UserError as exc:
+        return str(exc)
+    return None
+
+
+def _checked(raw: Raw, spec: DatasetSpec, as_is: Sequence[str]) -> tuple[dict, np.ndarray | None]:
+    """The value range of each image input, after refusing preprocessing that does not fit; the labels."""
+    ranges = {name: value_range(raw.inputs[name]) for name in raw.images}
+    check_preprocess(spec.preprocess, raw.inputs, ranges, source(spec), as_is)
+    return ranges, _labels(raw, spec)
 
 
 def _publish(building: Path, out: Path) -> None:
@@ -219,21 +235,6 @@ def _as_seen(name: str, shape: tuple[int, ...], dtype: np.dtype, preprocess: Pre
 def _is_image(sample_shape: tuple[int, ...], dtype: np.dtype) -> bool:
     """Images are (H, W, C) per sample, or (H, W) of uint8 (grayscale)."""
     return len(sample_shape) == 3 or (len(sample_shape) == 2 and dtype == np.uint8)
-
-
-def class_ids(labels: np.ndarray, what: str) -> np.ndarray:
-    """Classification labels as int64 (N,) class ids, after checking they are whole numbers >= 0."""
-    if labels.ndim > 2 or (labels.ndim == 2 and labels.shape[1] > 1):
-        raise UserError(f"{what} has shape {labels.shape}; classification needs one class id per sample, "
-                        f"shape (N,): store class ids (for one-hot rows, y.argmax(axis=1)), not one-hot or "
-                        f"per-class columns")
-    ids = labels.reshape(len(labels))
-    for bad, rule in ((ids != np.round(ids), "whole numbers"), (ids < 0, "class ids >= 0")):
-        if bad.any():
-            first = int(np.flatnonzero(bad)[0])
-            raise UserError(f"{what}: sample {first} is {ids[first]}; classification labels must be {rule} "
-                            f"(0 for the first class, 1 for the second...)")
-    return ids.astype(np.int64)
 
 
 def _labels(raw: Raw, spec: DatasetSpec) -> np.ndarray | None:

@@ -199,3 +199,18 @@ def _npy_array(archive: zipfile.ZipFile, path: Path, name: str, member: str) -> 
     except Exception as exc:  # truncated or corrupt data (zlib, CRC, EOF): any reader exception says so
         raise UserError(f"{path}: array '{name}' cannot be read ({why(exc)}); the file is damaged or "
                         f"truncated: {NPZ_HINT}") from None
+
+
+def class_ids(labels: np.ndarray, what: str) -> np.ndarray:
+    """Classification labels as int64 (N,) class ids, after checking they are whole numbers >= 0."""
+    if labels.ndim > 2 or (labels.ndim == 2 and labels.shape[1] > 1):
+        raise UserError(f"{what} has shape {labels.shape}; classification needs one class id per sample, "
+                        f"shape (N,): store class ids (for one-hot rows, y.argmax(axis=1)), not one-hot or "
+                        f"per-class columns")
+    ids = labels.reshape(len(labels))
+    for bad, rule in ((ids != np.round(ids), "whole numbers"), (ids < 0, "class ids >= 0")):
+        if bad.any():
+            first = int(np.flatnonzero(bad)[0])
+            raise UserError(f"{what}: sample {first} is {ids[first]}; classification labels must be {rule} "
+                            f"(0 for the first class, 1 for the second...)")
+    return ids.astype(np.int64)

@@ -18,14 +18,14 @@ from bench_matrix.jobs import ProbeJob
 from bench_matrix.jobs.results import Probe
 from bench_matrix.matrix.expand import combinations, judge, training_key, verdict_key
 from bench_matrix.matrix.spec import DatasetSpec, Matrix, ModelSpec
-from bench_matrix.matrix.yamlpos import format_path
+from bench_matrix.matrix.yamlpos import Located
 from bench_matrix.measure import env as environment
 from bench_matrix.registry import available
 from bench_matrix.scenarios import selectable
 from bench_matrix.sources.code import model_code
 from bench_matrix.sources.forward_call import call_problem
 from bench_matrix.sources.model_io import batch_problem
-from bench_matrix.tensors import TensorSpec, binding_problem
+from bench_matrix.tensors import TensorSpec, binding_problem, concrete, fed, open_axes
 from bench_matrix.workspace import Workspace, digest, file_sha256, tree_sha256
 
 
@@ -111,6 +111,22 @@ def _model_plan(matrix: Matrix, model: ModelSpec, read: dict[str, tuple[TensorSp
                      _described(matrix, model), data.model_shaped(dataset, inputs, model.layout))
 
 
+def timed_inputs(planned: ModelPlan) -> tuple[TensorSpec, ...] | None:
+    """The model's inputs as timed: the data's per-sample shapes, or for synthetic data the inputs' own with
+    each open axis given OPEN_LENGTH; None where only preparing the data tells (folders of recordings)."""
+    if planned.dataset.kind == "synthetic":
+        return tuple(replace(spec, shape=concrete(spec.shape)) for spec in planned.inputs or ())
+    described = data.describe(planned.dataset, planned.spec.layout, planned.as_is)
+    return None if described is None else fed(described, planned.inputs or ())
+
+
+def defaulted(planned: ModelPlan) -> tuple[TensorSpec, ...]:
+    """The model's inputs with an open axis that synthetic data gives the default length (OPEN_LENGTH)."""
+    if planned.dataset.kind != "synthetic":
+        return ()
+    return tuple(spec for spec in planned.inputs or () if open_axes(spec))
+
+
 def _described(matrix: Matrix, model: ModelSpec) -> str:
     if model.builtin:
         return f"builtin {model.builtin} (trained on the dataset's training split)"
@@ -130,13 +146,13 @@ def _several_inputs(matrix: Matrix, model: ModelSpec) -> bool:
 
 
 def _check_models(matrix: Matrix, models: dict[str, ModelPlan], probe: Probe) -> None:
-    """Inputs the data cannot feed or a factory's forward cannot take, synthetic data for a model whose inputs
-    nobody declared, a batch size fixed in the model's file: exit 2, located."""
+    """Inputs the data cannot feed or a factory's forward cannot take, synthetic data for undeclared inputs,
+    an .npz dataset preparing would refuse, a batch size fixed in the model's file: exit 2, located."""
     found = (_model_problem(matrix, i, models[m.name], probe) for i, m in enumerate(matrix.models))
-    problems = [problem for problem in found if problem]
+    problems = list(dict.fromkeys(problem for problem in found if problem))  # a shared dataset's: once
     if problems:
-        raise MatrixError([f"{matrix.path}:{_line(matrix, at)}: {format_path(at)}: {message}"
-                           for at, message in problems])
+        report = Located(matrix.path, matrix.lines)
+        raise MatrixError([report.located(at, message) for at, message in problems])
 
 
 def _model_problem(matrix: Matrix, i: int, planned: ModelPlan, probe: Probe) -> tuple[tuple, str] | None:
@@ -146,6 +162,8 @@ def _model_problem(matrix: Matrix, i: int, planned: ModelPlan, probe: Probe) -> 
         return at, (f"model {m.name}: synthetic data is drawn for the model's inputs, which its "
                     f"{'file does' if m.file else 'factory and weights do'} not declare; declare "
                     f"them under models[{i}].inputs (name, shape, dtype)")
+    if unreadable := data.read_problem(planned.dataset, planned.as_is):
+        return (at + ("dataset",) if m.dataset else ("dataset",)), unreadable
     described = data.describe(planned.dataset, m.layout, planned.as_is)
     names = [spec.name for spec in planned.inputs] if planned.inputs else list(described or ())
     problem = _forward_problem(m, names, probe)
@@ -153,12 +171,19 @@ def _model_problem(matrix: Matrix, i: int, planned: ModelPlan, probe: Probe) -> 
             unfit := binding_problem(described, planned.inputs)):
         problem = unfit + layout_note(data.images_read(planned.dataset, planned.as_is), m.layout)
     if problem:
-        return at + ("inputs",) if m.inputs else at, f"model {m.name}: {problem}"
+        culprits = f"model {m.name} ({planned.described}){_with_data(matrix, planned.dataset)}"
+        return at + ("inputs",) if m.inputs else at, f"{culprits}: {problem}"
     fixed = probe.batches.get(str(m.file)) if m.file else None
     if fixed and (problem := batch_problem(relative(matrix, m.file), m.source_format, fixed,
                                            matrix.settings.batch_size)):
         return at, f"model {m.name}: {problem}"
     return None
+
+
+def _with_data(matrix: Matrix, dataset: DatasetSpec) -> str:
+    """' with data.npz': the data's files as seen from the matrix's folder; '' for built-in or synthetic
+    data."""
+    return f" with {', '.join(relative(matrix, path) for path in dataset.paths)}" if dataset.paths else ""
 
 
 def _forward_problem(model: ModelSpec, names: list[str], probe: Probe) -> str | None:
@@ -169,7 +194,8 @@ def _forward_problem(model: ModelSpec, names: list[str], probe: Probe) -> str | 
     return call_problem(model.factory or "", params, names, bool(model.inputs))
 
 
-def _line(matrix: Matrix, at: tuple) -> int:
+def matrix_line(matrix: Matrix, at: tuple) -> int:
+    """The matrix file's line of the key at `at` (or of the nearest key holding it)."""
     while at and at not in matrix.lines:
         at = at[:-1]
     return matrix.lines.get(at, 1)

@@ -14,11 +14,12 @@ from bench_matrix.executors.local import probe_here
 from bench_matrix.jobs import ProbeJob
 from bench_matrix.matrix.expand import Verdict, VerdictKey
 from bench_matrix.measure import env as environment
-from bench_matrix.plan import Plan
+from bench_matrix.plan import ModelPlan, Plan, defaulted, matrix_line, timed_inputs
 from bench_matrix.registry import available, vocabulary
 from bench_matrix.scenarios import selectable
 from bench_matrix.selection import Filters
 from bench_matrix.store import ResultStore
+from bench_matrix.tensors import OPEN_LENGTH, TensorSpec, axes_text, concrete, open_axes, shape_text
 from bench_matrix.workspace import Workspace
 
 STATE_STYLE = {"run": "[green]will run[/]", "stored": "[cyan]stored[/]", "skip": "[yellow]skipped[/]",
@@ -26,8 +27,9 @@ STATE_STYLE = {"run": "[green]will run[/]", "stored": "[cyan]stored[/]", "skip":
 
 
 def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, results: Path | None,
-              show_all: bool = False) -> None:
-    """Cells that will run, are stored, or are skipped (why); then the combinations that are not valid (why)."""
+              show_all: bool = False, automatic: bool = False) -> None:
+    """Cells that will run, are stored, or are skipped (why); then the combinations that are not valid (why).
+    `automatic`: the matrix of a model file."""
     filters.check([p.cell for p in plan.cells])
     results = results or ws.results
     store = ResultStore(results, readonly=True) if results.is_file() else None
@@ -55,8 +57,67 @@ def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, res
                   f"{counts['invalid']} not valid, {plan.excluded} removed by exclude")
     for line in _slow(plan, [p for p in cells if p.state == "run"]):
         console.print(line, highlight=False, markup=False, soft_wrap=True)
+    show_inputs(console, plan, filters, automatic)
     if store:
         store.close()
+
+
+def show_inputs(console: Console, plan: Plan, filters: Filters, automatic: bool = False) -> None:
+    """A line per chosen model: the shapes its inputs are timed at; on standard error, a warning per input
+    whose open axes synthetic data gives the default length. `automatic`: the matrix of `run MODEL_FILE`."""
+    chosen = {p.cell.model for p in plan.cells if filters.keep(p.cell)}
+    warnings = Console(stderr=True)
+    for i, model in enumerate(plan.matrix.models):
+        if model.name in chosen:
+            planned = plan.models[model.name]
+            console.print(f"model {model.name}: {_timed(planned)}", highlight=False, markup=False,
+                          soft_wrap=True)
+            for spec in defaulted(planned):
+                warnings.print("[yellow]warning:[/] " + escape(_open_warning(plan, i, spec, automatic)),
+                               highlight=False, soft_wrap=True)
+
+
+def _timed(planned: ModelPlan) -> str:
+    """The shapes the model's inputs are timed at, per sample, and where they come from."""
+    timed = timed_inputs(planned)
+    if timed is None:
+        return "inputs of the shapes the data holds (read when it is prepared)"
+    shapes = ", ".join(f"{spec.name} {shape_text(spec.shape)} {spec.dtype}" for spec in timed)
+    where = "the data's shapes"
+    if planned.dataset.kind == "synthetic":
+        where = "synthetic data" + (f"; open axes given {OPEN_LENGTH}" if defaulted(planned) else "")
+    return f"timed with {shapes} per sample ({where})"
+
+
+def _open_warning(plan: Plan, i: int, spec: TensorSpec, automatic: bool) -> str:
+    """The input's open axes, the length each got, the shape timed, and how to give the lengths."""
+    planned = plan.models[plan.matrix.models[i].name]
+    at, how = _lengths_hint(planned, i, spec, automatic)
+    where = "" if automatic else f"{plan.matrix.path}:{matrix_line(plan.matrix, at)}: "
+    return (f"{where}model {planned.spec.name} ({planned.described}): input '{spec.name}' "
+            f"({shape_text(spec.shape)}) {spec.dtype} has open {axes_text(open_axes(spec))} (the batch axis "
+            f"is 0), which synthetic data gives the default length {OPEN_LENGTH}: it is timed at "
+            f"{shape_text(concrete(spec.shape))} per sample; give the lengths to time with {how} "
+            f"(docs/models.md#inputs-with-open-axes)")
+
+
+def _lengths_hint(planned: ModelPlan, i: int, spec: TensorSpec, automatic: bool) -> tuple[tuple, str]:
+    """Where in the matrix the input's lengths go, and what to write: --input for `run MODEL_FILE`, the
+    declared input's shape, or the model's inputs (all of them, in order: they replace what the file says)."""
+    if automatic:
+        return ("models", i), f"--input {spec.name}:{','.join(_lengths(spec))}:{spec.dtype}"
+    declared = [s.name for s in planned.spec.inputs]
+    if spec.name in declared:
+        j = declared.index(spec.name)
+        return ("models", i, "inputs", j), f"models[{i}].inputs[{j}].shape: [{', '.join(_lengths(spec))}]"
+    listed = ", ".join(f"{{name: {s.name}, shape: [{', '.join(_lengths(s))}], dtype: {s.dtype}}}"
+                       for s in planned.inputs or ())
+    return ("models", i), f"models[{i}].inputs: [{listed}]"
+
+
+def _lengths(spec: TensorSpec) -> list[str]:
+    """The input's axes, each open one as a placeholder for the length to give."""
+    return ["<length>" if d is None else str(d) for d in spec.shape]
 
 
 def _slow(plan: Plan, running: list[CellPlan]) -> list[str]:

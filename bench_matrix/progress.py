@@ -44,12 +44,19 @@ class RunProgress:
         self._progress.refresh()
         self._line(text)
 
-    def phase(self, name: str) -> None:
-        """A phase of the current step began, or its job waits for the timing lock (naming the holder)."""
-        self._progress.update(self._task, description=f"{self._current} · {escape(name)}")
+    @property
+    def current(self) -> str:
+        """The step begun last."""
+        return self._current
+
+    def phase(self, name: str, step: str | None = None) -> None:
+        """A phase of `step` (by default the current one: a job running elsewhere reports after later steps
+        began) began, or its job waits for the timing lock (naming the holder)."""
+        under = self._current if step is None else step
+        self._progress.update(self._task, description=f"{under} · {escape(name)}")
         self._progress.refresh()
         if not LATER_ROUND.match(name):
-            self._line(f"{self._current} · {name}")
+            self._line(f"{under} · {name}")
 
     def _line(self, text: str) -> None:
         """Outside a terminal, where the bar is not drawn: the line, after the seconds since the start."""
@@ -63,6 +70,13 @@ class RunProgress:
     def finished(self, record: CellRecord) -> None:
         """Print the finished cell's key figures above the bar."""
         self._progress.console.print(describe(record))
+        self._progress.advance(self._task)
+        self._progress.refresh()
+
+    def already_stored(self, cell: Cell) -> None:
+        """A cell another run stored while this one prepared it: said above the bar, and counted done."""
+        self._progress.console.print(f"[dim]=[/] {escape(f'{cell.model} · {cell.label}')}: already stored "
+                                     f"(measured by another run meanwhile)")
         self._progress.advance(self._task)
         self._progress.refresh()
 

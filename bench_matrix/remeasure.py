@@ -10,12 +10,12 @@ from pathlib import Path
 from typing import Any
 
 from bench_matrix.cell import CellPlan
-from bench_matrix.executors.base import Ended, Executor
-from bench_matrix.jobs import MeasureJob, RoundsJob
-from bench_matrix.jobs.results import Converted, Measured
-from bench_matrix.plan import Plan
+from bench_matrix.executors.base import Ended, Executor, Limits, Work
+from bench_matrix.jobs import MeasureJob, ReferenceJob, RoundsJob
+from bench_matrix.jobs.results import Converted, Measured, PreparedData
+from bench_matrix.plan import ModelPlan, Plan
 from bench_matrix.progress import RunProgress
-from bench_matrix.runner import Measuring, Ready, Runner
+from bench_matrix.runner import PREPARE_TIMEOUT_S, Converting, Measuring, Ready, Runner
 from bench_matrix.store import CellRecord
 from bench_matrix.workspace import Workspace
 
@@ -57,6 +57,11 @@ def twins(base: Iterable[CellRecord], new: Iterable[CellRecord]) -> Twins:
     return found
 
 
+def _converted(folder: Path) -> Converted:
+    """An artifact's folder as a cached conversion."""
+    return Converted(folder, json.loads((folder / "manifest.json").read_text()), True)
+
+
 def _folder(record: CellRecord) -> Path | None:
     """The converted artifact's folder (holding the model and its manifest), if it is here."""
     folder = Path(record.artifact_path).parent if record.artifact_path else None
@@ -70,6 +75,7 @@ class Remeasure(Runner):
     def __init__(self, plan: Plan, workspace: Workspace, executor: Executor, console: Any, found: Twins):
         super().__init__(plan, workspace, None, executor, console)  # type: ignore[arg-type]
         self.twins, self.result = found, Remeasured(missing=dict(found.missing))
+        self.references: dict[str, dict[str, Path | None]] = {}  # model -> side -> its own baseline's outputs
 
     def remeasure(self) -> Remeasured:
         """Time every cell's twins; the measurements, and why any could not be taken."""
@@ -88,17 +94,43 @@ class Remeasure(Runner):
             self._drain(wait=True)
         return self.result
 
+    def _start_cells(self, model: ModelPlan, data: PreparedData, cells: list[CellPlan], ended: Ended) -> None:
+        """First each side's reference: the outputs of its own baseline's artifact (none where the baseline is
+        not remeasured: that side's fidelity is not scored), then the cells."""
+        baseline = model.baseline
+        folders = self.twins.folders.get(baseline.key) if baseline is not None and ended.ok else None
+        found = self.references.setdefault(model.spec.name, {})
+        if folders is None:
+            Runner._start_cells(self, model, data, cells, ended)
+            return
+
+        def kept(side: str, done: Ended) -> None:
+            found[side] = done.result.outputs if done.ok else None
+            if len(found) == len(folders):
+                Runner._start_cells(self, model, data, cells, ended)
+
+        for side, folder in zip((BASE, NEW), folders):
+            job = ReferenceJob(self.ws, baseline, _converted(folder), ended.result.source, data,
+                               model.spec.layout, self.matrix.settings)
+            self._submit(Work(job, Limits(model.log, PREPARE_TIMEOUT_S)),
+                         lambda done, side=side: kept(side, done))
+
     def _start_cell(self, p: CellPlan, ready: Ready) -> None:
-        """Both artifacts of the cell, as they are: no fine-tuning, no conversion."""
+        """Both artifacts of the cell, as they are (no fine-tuning, no conversion), each scored against its
+        side's own baseline."""
         model, settings = ready.model, self.matrix.settings
         measuring = []
+        references = self.references.get(model.spec.name, {})
         for side, folder in zip((BASE, NEW), self.twins.folders[p.cell.key]):
-            converted = Converted(folder, json.loads((folder / "manifest.json").read_text()), True)
-            job = MeasureJob(self.ws, p.cell, model.task, converted, ready.prepared.source, ready.data,
-                             model.spec.layout, settings, ready.prepared.reference, self.matrix.metrics,
-                             side=side)
+            job = MeasureJob(self.ws, p.cell, model.task, _converted(folder), ready.prepared.source,
+                             ready.data, model.spec.layout, settings, references.get(side),
+                             self.matrix.metrics, side=side)
             measuring.append(Measuring(p, job, "", None))
         self._settled(p, measuring)
+
+    def _claim(self, converting: Converting) -> None:
+        """A comparison stores nothing: its twins are measured without a store's lock."""
+        self._submit_rounds(converting.ready.model, converting.measuring)
 
     def _rounds(self, group: list[Measuring], baseline: Any) -> RoundsJob:
         """Twins side by side (so a memory budget seldom parts them), each new one paired against its base."""

@@ -3,6 +3,7 @@ each fine-tuning once, then each cell's conversion and measurement) and store ea
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -16,6 +17,7 @@ from bench_matrix.executors.base import Ended, Executor, Limits, Work
 from bench_matrix.jobs import ConvertJob, DatasetJob, FinetuneJob, MeasureJob, ModelJob, RoundsJob
 from bench_matrix.jobs.results import PreparedData, PreparedModel
 from bench_matrix.measure import env as environment
+from bench_matrix.measure.machine_lock import store_lock
 from bench_matrix.measurement import Measurement
 from bench_matrix.plan import ModelPlan, Plan
 from bench_matrix.progress import RunProgress
@@ -47,7 +49,7 @@ class Measuring:
 
 
 @dataclass
-class _Converting:
+class Converting:
     """A model's cells while they convert: the cells still converting, and the converted ones."""
 
     ready: Ready
@@ -68,7 +70,10 @@ class Runner:
         self.progress: RunProgress
         self._handlers: dict[Work, Callable[[Ended], None]] = {}
         self._shared: dict[Any, list[Callable[[Ended], None]] | Ended] = {}  # waiting for it, or how it ended
-        self._converting: dict[str, _Converting] = {}
+        self._converting: dict[str, Converting] = {}
+        self.force = False
+        self._held: dict[str, list[int]] = {}  # model -> [its store lock, its rounds jobs not stored yet]
+        self._deferred: list[Converting] = []  # waiting for a busy store lock until this run holds none
 
     def run(self, filters: Filters, force: bool) -> dict[str, int]:
         filters.check([p.cell for p in self.plan.cells])
@@ -77,9 +82,11 @@ class Runner:
             raise UserError("no cell of the matrix matches the filters (see `bench-matrix plan`)")
         chosen = self.executor.decide(self.plan, self.shard.select(chosen))
         todo = [p for p in chosen if p.state == "run" and (force or not self._done(p))]
+        self.force = force
         self.counts = {"ok": 0, "skipped": 0, "failed": 0,
                        "cached": len([p for p in chosen if p.state == "run"]) - len(todo)}
         begin = time.monotonic()
+        self.ws.sweep()
         run = self.store.begin_run(str(self.matrix.path), self.host, environment.run_versions(), self.label,
                                    _now())
         self.run_id = run.id
@@ -91,6 +98,9 @@ class Runner:
             wall_s = round(time.monotonic() - begin, 1)
             summary = {"wall_s": wall_s, "counts": self.counts, "completed": completed}
             self.store.end_run(run.id, _now(), {**summary, **self._shard_summary()})
+            self.ws.sweep()
+            for lock, _ in self._held.values():
+                os.close(lock)
         return self.counts
 
     def _shard_summary(self) -> dict[str, str]:
@@ -115,9 +125,11 @@ class Runner:
             self._drain(wait=True)
 
     def _submit(self, work: Work, then: Callable[[Ended], None]) -> None:
-        """Hand work to the executor; `then` takes how it ended (at once when the executor ran it already)."""
+        """Hand work to the executor; `then` takes how it ended (at once when the executor ran it already).
+        Its phases show under the step it was handed over in, whatever steps began since."""
         self._handlers[work] = then
-        self.executor.submit(work, self.progress.phase, self.progress.tick)
+        step = self.progress.current
+        self.executor.submit(work, lambda name: self.progress.phase(name, step), self.progress.tick)
         self._drain(wait=False)
 
     def _drain(self, wait: bool) -> None:
@@ -184,7 +196,7 @@ class Runner:
             return
         ready = Ready(model, data, ended.result)
         self._fact(f"model:{model.spec.name}", "info", ready.prepared.info)
-        self._converting[model.spec.name] = _Converting(ready, {p.cell.key for p in cells})
+        self._converting[model.spec.name] = Converting(ready, {p.cell.key for p in cells})
         for p in cells:
             self._start_cell(p, ready)
 
@@ -229,22 +241,68 @@ class Runner:
         self._settled(p, [Measuring(p, job, started, ended.where)])
 
     def _settled(self, p: CellPlan, measuring: list[Measuring]) -> None:
-        """A cell's conversion ended; once all of its model's have, its converted cells are measured together,
-        in rounds, one rounds job per machine holding their artifacts."""
+        """A cell's conversion ended; once all of its model's have, its converted cells are claimed to be
+        measured."""
         converting = self._converting[p.cell.model]
         converting.pending.discard(p.cell.key)
         converting.measuring.extend(measuring)
-        if converting.pending:
+        if not converting.pending:
+            self._claim(converting)
+
+    def _claim(self, converting: Converting) -> None:
+        """Measure a model's converted cells holding its store lock (one run at a time measures a model into a
+        store: unless --force, those another run stored meanwhile are already stored). A busy lock is waited
+        for only while this run holds none (two runs each waiting for the other's would wait for ever)."""
+        model = converting.ready.model.spec.name
+        if self.force or not converting.measuring:
+            self._submit_rounds(converting.ready.model, converting.measuring)
             return
+        lock = store_lock(self.store.path, model, not self._held, lambda: self.progress.step(
+            f"{model} · waiting for another run measuring it into {self.store.path}"))
+        if lock is None:
+            self._deferred.append(converting)
+            return
+        measuring = [m for m in converting.measuring if not self._stored_meanwhile(m)]
+        by_machine = {m.where for m in measuring}
+        self._held[model] = [lock, len(by_machine)]
+        if by_machine:
+            self._submit_rounds(converting.ready.model, measuring)
+        else:
+            self._unlock(model)
+
+    def _stored_meanwhile(self, m: Measuring) -> bool:
+        """Whether another run stored the cell while this one converted it (counted, and said, already
+        stored)."""
+        if not self._done(m.plan):
+            return False
+        self.counts["cached"] += 1
+        self.progress.already_stored(m.plan.cell)
+        return True
+
+    def _release(self, model: str) -> None:
+        """One of a model's rounds jobs is stored; after the last, its store lock is released."""
+        self._held[model][1] -= 1
+        if self._held[model][1] == 0:
+            self._unlock(model)
+
+    def _unlock(self, model: str) -> None:
+        """Release a model's store lock; holding none, claim a model deferred for a busy one."""
+        os.close(self._held.pop(model)[0])
+        if not self._held and self._deferred:
+            self._claim(self._deferred.pop(0))
+
+    def _submit_rounds(self, model: ModelPlan, measuring: list[Measuring]) -> None:
+        """A model's converted cells measured together, in rounds, one rounds job per machine holding their
+        artifacts."""
         by_machine: dict[Any, list[Measuring]] = {}
-        for m in converting.measuring:
+        for m in measuring:
             by_machine.setdefault(m.where, []).append(m)
-        baseline = converting.ready.model.baseline
+        baseline = model.baseline
         for where, group in by_machine.items():
             job = self._rounds(group, baseline)
             limits = Limits(self._log(group[0].plan), self.matrix.settings.timeout_s,
                             self.matrix.settings.threads)
-            self.progress.step(f"{p.cell.model} · measuring {len(group)} cells in rounds")
+            self.progress.step(f"{model.spec.name} · measuring {len(group)} cells in rounds")
             self._submit(Work(job, limits, on=where), lambda ended, group=group: self._measured(group, ended))
 
     def _rounds(self, group: list[Measuring], baseline: Any) -> RoundsJob:
@@ -266,6 +324,8 @@ class Runner:
             measured = found.measured
             self._finished(self._record(m.plan, "ok", None, m.started, metrics=measured.metrics,
                                         env=measured.env, artifact=artifact), measured.samples)
+        if not self.force:
+            self._release(group[0].plan.cell.model)
 
     def _fact(self, kind: str, name: str, value: Any) -> None:
         self.store.put_fact(kind, name, value)

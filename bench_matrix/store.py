@@ -3,7 +3,10 @@ overwritten by a later run), the raw latencies of ok records, and facts about mo
 
 from __future__ import annotations
 
+import errno
 import json
+import os
+import shutil
 import sqlite3
 import uuid
 from collections.abc import Iterable, Iterator, Mapping
@@ -36,6 +39,8 @@ _CELL_ORDER = "model, backend, strategy, precision, target, host"
 # newest first among the records of one cell on one host
 _NEWEST = "COALESCE(finished_at, started_at, '') DESC, id DESC"
 _KEYS_A_QUERY = 500  # below SQLite's smallest limit on a statement's variables (999)
+_TRIAL_BYTES = 1 << 20  # what a trial write puts beside the store to tell a full disk from a failing one
+_NO_ROOM = {errno.ENOSPC: "is full", errno.EDQUOT: "is over your disk quota"}
 
 
 @dataclass
@@ -142,7 +147,8 @@ class ResultStore:
         try:
             yield
         except BaseException:
-            self._db.execute("ROLLBACK")
+            if self._db.in_transaction:  # SQLite rolls back by itself on some errors (a full disk)
+                self._db.execute("ROLLBACK")
             raise
         self._db.execute("COMMIT")
 
@@ -159,7 +165,8 @@ class ResultStore:
         try:
             yield
         except sqlite3.Error as error:
-            raise UserError(f"{self._label} {self.path}: {doing} ({error}); {hint}") from None
+            raise UserError(f"{self._label} {self.path}: {doing} ({error}); "
+                            f"{no_room(error, self.path.absolute().parent) or hint}") from None
 
     def close(self) -> None:
         self._db.close()
@@ -305,6 +312,37 @@ class ResultStore:
         with self._errors("cannot read results"):
             rows = self._db.execute("SELECT series, data FROM samples WHERE record_id = ?", (record_id,))
             return {series: bytes(data) for series, data in rows.fetchall()}
+
+
+def no_room(error: sqlite3.Error, folder: Path) -> str | None:
+    """What to do when SQLite failed for want of room in `folder` (SQLITE_FULL, or an I/O error that a trial
+    write there confirms: ENOSPC, EDQUOT); None for any other error."""
+    code = getattr(error, "sqlite_errorcode", 0) & 0xFF  # the primary code of an extended one
+    if code not in (sqlite3.SQLITE_FULL, sqlite3.SQLITE_IOERR):
+        return None
+    why = _trial_write(folder) or ("is full" if code == sqlite3.SQLITE_FULL else None)
+    if why is None:
+        return None
+    free = shutil.disk_usage(folder).free / 1e6
+    return (f"the disk holding {folder} {why} ({free:.0f} MB free); the store is intact (a write lands whole "
+            f"or not at all): free space there, or choose a results file on another disk (--results), "
+            f"and run again: finished cells are kept")
+
+
+def _trial_write(folder: Path) -> str | None:
+    """Why a small file cannot be written in `folder` for want of room ('is full', ...); None if it can."""
+    path = folder / f".bench-matrix-trial-{os.getpid()}"
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        try:
+            os.write(fd, bytes(_TRIAL_BYTES))
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+            path.unlink()
+    except OSError as exc:
+        return _NO_ROOM.get(exc.errno)
+    return None
 
 
 def _record(row: tuple) -> CellRecord:

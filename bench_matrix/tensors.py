@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -12,6 +12,7 @@ import numpy as np
 Inputs = dict[str, np.ndarray]
 DTYPES = ("float32", "float16", "float64", "bfloat16", "int64", "int32", "int16", "int8", "uint8", "bool")
 SINGLE = "x"  # the name of the one input array of a single-input dataset
+OPEN_LENGTH = 8  # the length synthetic data gives an open axis (None) of an input
 # Casts from a data array's dtype to the model input's dtype that cannot change a value that matters.
 SAFE_CASTS = {("float64", "float32"), ("float16", "float32"), ("uint8", "float32"), ("int32", "int64"),
               ("int64", "int32"), ("int16", "int64"), ("int16", "int32"), ("uint8", "int64"),
@@ -57,9 +58,34 @@ def specs_from_list(data: Sequence[Mapping[str, Any]]) -> tuple[TensorSpec, ...]
     return tuple(TensorSpec.from_dict(d) for d in data)
 
 
-def concrete(shape: Sequence[int | None], length: int = 8) -> tuple[int, ...]:
+def concrete(shape: Sequence[int | None], length: int = OPEN_LENGTH) -> tuple[int, ...]:
     """A concrete sample shape: every free axis (None) given `length`."""
     return tuple(length if d is None else int(d) for d in shape)
+
+
+def open_axes(spec: TensorSpec) -> tuple[int, ...]:
+    """The input's open axes (None), numbered as in a batch: the batch axis is 0."""
+    return tuple(axis for axis, d in enumerate(spec.shape, start=1) if d is None)
+
+
+def axes_text(axes: Sequence[int]) -> str:
+    """Axis numbers in words: 'axis 2', 'axes 2 and 3'."""
+    numbers = [str(axis) for axis in axes]
+    return f"axis {numbers[0]}" if len(numbers) == 1 else f"axes {', '.join(numbers[:-1])} and {numbers[-1]}"
+
+
+def shape_text(shape: Sequence[int | None]) -> str:
+    """A sample shape as '3×224×224' (? for an open axis; 'scalar' for none)."""
+    return "×".join("?" if d is None else str(d) for d in shape) or "scalar"
+
+
+def fed(data: Mapping[str, TensorSpec], model: Sequence[TensorSpec]) -> tuple[TensorSpec, ...]:
+    """The model's inputs with the per-sample shape of the data array feeding each (a single array feeds a
+    single input); the data's arrays themselves where the model's inputs are not known."""
+    if not model:
+        return tuple(data.values())
+    names = data_names(data, model)
+    return tuple(replace(spec, shape=data[name].shape) for spec, name in zip(model, names) if name in data)
 
 
 def random_inputs(specs: Sequence[TensorSpec], batch: int, seed: int) -> Inputs:

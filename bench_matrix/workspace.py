@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import os
+import re
+import shutil
 import stat
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,6 +16,8 @@ from typing import Any, BinaryIO
 from bench_matrix.errors import UserError
 
 DEFAULT_ROOT = Path(".bench-matrix")
+OWNED = re.compile(r"(?:job|session|partial)-(\d+)-\d+")  # named by the pid of the process that wrote it
+SERIAL = itertools.count()  # tells apart one process's partial paths
 FILE_TYPES = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a named pipe"),
               (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
               (stat.S_ISSOCK, "a socket"))
@@ -30,8 +35,35 @@ class Workspace:
 
     @property
     def jobs(self) -> Path:
-        """Job and result files exchanged with job processes (removed as each job ends)."""
-        return self.root / "jobs"
+        """Job and result files exchanged with job processes, a folder per host (a workspace may be shared):
+        removed as each job ends, and by `sweep` where a killed run left them."""
+        from bench_matrix.measure.env import host_name
+
+        return self.root / "jobs" / host_name()
+
+    @property
+    def partials(self) -> Path:
+        """Files and folders being written, a folder per host: each is moved into its place whole once
+        written, so nothing half-written is ever in cache/; `sweep` removes those a killed process left."""
+        from bench_matrix.measure.env import host_name
+
+        return self.root / "tmp" / host_name()
+
+    def partial(self, final: Path) -> Path:
+        """A new path of this process's own (its pid in the name) to write `final` at before moving it into
+        place (Path.replace, rename); `final`'s folder is created."""
+        final.parent.mkdir(parents=True, exist_ok=True)
+        self.partials.mkdir(parents=True, exist_ok=True)
+        return self.partials / f"partial-{os.getpid()}-{next(SERIAL)}-{final.name}"
+
+    def sweep(self) -> None:
+        """Remove this host's job files and partial files whose process has ended (a run's own once it ends, a
+        killed run's); those of a live process, another run's, stay."""
+        for folder in (self.jobs, self.partials):
+            for path in folder.glob("*") if folder.is_dir() else ():
+                found = OWNED.match(path.name)
+                if found and not _alive(int(found[1])):
+                    _remove(path)
 
     def datasets(self, fingerprint: str) -> Path:
         return self.root / "cache" / "datasets" / fingerprint
@@ -44,6 +76,10 @@ class Workspace:
 
     def intermediates(self, backend: str, fingerprint: str) -> Path:
         return self.root / "cache" / "intermediates" / backend / fingerprint
+
+    def references(self, fingerprint: str) -> Path:
+        """The fp32 outputs of a baseline artifact that `compare --remeasure` scores its side against."""
+        return self.root / "cache" / "references" / fingerprint
 
     def finetuned(self, fingerprint: str) -> Path:
         return self.root / "cache" / "finetuned" / fingerprint
@@ -67,6 +103,23 @@ class Workspace:
     def cell_log(self, key: str) -> Path:
         """The log of one cell's processes (fine-tune, convert, measure), by its key."""
         return self.logs / f"{key.replace('/', '__')}.log"
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's
+        return True
+    return True
 
 
 def digest(obj: Any) -> str:

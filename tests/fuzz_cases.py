@@ -43,8 +43,9 @@ def markers(project: Path) -> Path:
     return project / "markers"
 
 
-def onnx_model(location: str | None = None) -> bytes:
-    """A tiny ONNX model, (N,3,16,16) -> (N,2); with `location`, its weights are external data there."""
+def onnx_model(location: str | None = None, dims: tuple = ("N", 3, 16, 16)) -> bytes:
+    """A tiny ONNX model, (N,3,16,16) -> (N,2), its input's axes `dims` (a name or None: open); with
+    `location`, its weights are external data there."""
     from onnx import TensorProto, helper, numpy_helper
 
     weights = numpy_helper.from_array(np.full((3, 2), 0.5, np.float32), "W")
@@ -57,7 +58,7 @@ def onnx_model(location: str | None = None) -> bytes:
     nodes = [helper.make_node("ReduceMean", ["X"], ["M"], axes=[2, 3], keepdims=0),
              helper.make_node("MatMul", ["M", "W"], ["Y"])]
     graph = helper.make_graph(nodes, "tiny",
-                              [helper.make_tensor_value_info("X", TensorProto.FLOAT, ["N", 3, 16, 16])],
+                              [helper.make_tensor_value_info("X", TensorProto.FLOAT, list(dims))],
                               [helper.make_tensor_value_info("Y", TensorProto.FLOAT, ["N", 2])], [weights])
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
     return model.SerializeToString()
@@ -193,7 +194,6 @@ def after_line_1(opening: str) -> str:
 TAIL = "dataset:" + render().split("dataset:", 1)[1]
 SYNTAX = {  # name -> (matrix text, what the message names besides the file)
     "unclosed_flow_mapping": (after_line_1("  - {name: tiny, framework: onnx"), ("line 2", ":2:")),
-    "unclosed_quote": (after_line_1('  - name: "tiny'), ("line 2", ":2:")),
     "tab_indentation": ("models:\n\t- {name: tiny}\n", (":2:", "line 2")),
     "mapping_in_scalar": ("models: a: b\n", (":1:", "line 1")),
     "two_documents": (render() + "---\n" + render(), ()), "empty_file": ("", ()),
@@ -209,6 +209,40 @@ SYNTAX = {  # name -> (matrix text, what the message names besides the file)
     "set_tag": (render().replace("strategy:\n  - none", "strategy: !!set {none}"), ("axes.strategy",)),
     "custom_tag": ("include: !include other.yaml\n" + render(), ("include",)),
 }
+def nested(levels: int, value: str) -> str:
+    """`deep:` holding `levels` nested block mappings, the last one's `a:` holding `value`."""
+    return "deep:\n" + "".join(" " * i + " a:\n" for i in range(levels - 1)) + " " * levels + f"a: {value}\n"
+
+
+LINES = len(render().splitlines())
+ONE_MODEL = "- name: tiny\n  framework: onnx\n  file: tiny.onnx\n"
+LOCATED = {  # name -> (matrix text, the line its message must start at, what else it names)
+    "unclosed_quote": (after_line_1('  - name: "tiny'), 2, "column 11"),
+    "unclosed_quote_at_the_end": (render() + "description: 'never closed\n", LINES + 1, "quoted scalar"),
+    "deep_block_nesting": (render() + nested(60, "1"), LINES + 51, "limit 50"),
+    "deep_through_an_alias": ("anchor: &d " + "[" * 30 + "]" * 30 + "\n" + render() + nested(25, "*d"),
+                              LINES + 27, "limit 50"),
+    "alias_in_a_list": ("description: &p int4\n" + render().replace("  - fp32\n", "  - fp32\n  - *p\n"), 19,
+                        "axes.precision[1]: 'int4' is not allowed"),
+    "alias_of_a_model": (render().replace(ONE_MODEL, "- &m {name: tiny, framework: onnx, file: tiny.onnx}\n"
+                                                     "- *m\n"), 3, "line 2"),
+    "recursive_alias_on_its_own_line": ("axes: &a\n  strategy:\n  - *a\n" + render().split("axes:")[0], 3,
+                                        "recursive alias"),
+}
+UNFIT = {  # name -> (the npz's x per sample, the model file): data the model's input cannot take
+    "npz_rank_too_low": ((16,), "tiny.onnx"), "npz_rank_too_high": ((2, 3, 16, 16), "tiny.onnx"),
+    "onnx_input_mismatch": ((3, 8, 8), "bad.onnx"),
+}
+
+
+def unfit(project: Path, name: str) -> str:
+    """`name`.npz with x of the case's shape, and its model file (a copy of tiny.onnx): the matrix of both."""
+    shape, model = UNFIT[name]
+    np.savez(project / f"{name}.npz", x=np.zeros((48, *shape), np.float32), y=np.zeros((48, 2), np.float32))
+    (project / model).write_bytes(onnx_model())
+    return render(((("dataset", "npz"), f"{name}.npz"), (("models", 0, "file"), model)))
+
+
 TYPES = {  # name -> (key path, raw YAML value, what the message names)
     "models_mapping": ("models", "{}", "models"), "models_string": ("models", "tiny", "models"),
     "models_item_int": ("models", "[5]", "models[0]"), "models_item_list": ("models", "[[]]", "models[0]"),
@@ -285,6 +319,10 @@ def text_cases() -> list[Case]:
     """Syntax errors, wrong types, typos, impossible combinations, encodings and python tags."""
     cases = [Case(f"syntax:{name}", lambda _p, t=text: t, (names,) if names else ())
              for name, (text, names) in SYNTAX.items()]
+    cases += [Case(f"unfit:{name}", lambda p, n=name: unfit(p, n),
+                   ((f"{name}.npz",), (model,), ("models[0]",))) for name, (_shape, model) in UNFIT.items()]
+    cases += [Case(f"located:{name}", lambda _p, t=text: t, ((rf"re:fuzz\.yaml:{line}: ",), (names,)))
+              for name, (text, line, names) in LOCATED.items()]
     for name, (dotted, raw, names) in TYPES.items():
         top_level = dotted.split(".")[0] not in BASE
         text = render() + f"{dotted}: {raw}\n" if top_level else render((), raw, key_path(dotted))

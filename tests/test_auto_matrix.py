@@ -3,6 +3,7 @@ models of every format."""
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -142,3 +143,29 @@ def test_run_an_onnx_file_in_one_command(tmp_path):
     assert len(written) == 1 and written[0].read_text() == cli(tmp_path, "init", "tiny.onnx").stdout
     again = cli(tmp_path, "run", "tiny.onnx", *chosen)
     assert "0 ok" in again.stdout and "2 already stored" in again.stdout, again.stdout
+    planned = cli(tmp_path, "plan", "tiny.onnx", *chosen)  # the same automatic matrix, its cells stored
+    assert planned.returncode == 0 and "automatic matrix of " in planned.stdout, planned.stderr
+    assert re.search(r"0 will run, 2 already stored, 0 will be skipped", planned.stdout), planned.stdout
+
+
+@pytest.mark.slow
+def test_run_a_torchscript_file_with_two_outputs(tmp_path):
+    """A TorchScript file returning two heads converts for ONNX Runtime and OpenVINO: ok cells, each output
+    matched against the baseline's."""
+    import torch
+
+    import tiny_models
+
+    two_heads = torch.jit.trace(tiny_models.fitted_two_outputs(), torch.rand(2, *tiny_models.INPUT_SHAPE),
+                                strict=False)
+    torch.jit.save(two_heads, tmp_path / "two_out.pt")
+    shape = ",".join(map(str, tiny_models.INPUT_SHAPE))
+    done = cli(tmp_path, "run", "two_out.pt", "--input", f"image:{shape}:float32", "--backend",
+               "onnxruntime,openvino", "--strategy", "none", "--precision", "fp32")
+    assert done.returncode == 0, done.stderr
+    assert re.search(r"done: 2 ok, 0 skipped, 0 failed", done.stdout), done.stdout
+    records = json.loads(cli(tmp_path, "report", "--format", "json").stdout)["records"]
+    assert sorted(r["cell"]["backend"] for r in records) == ["onnxruntime", "openvino"]
+    for record in records:
+        outputs = record["metrics"]["per_output"]
+        assert len(outputs) == 2 and all(o["cosine_similarity"] > 0.9999 for o in outputs), record

@@ -248,13 +248,3 @@ def test_a_models_cells_are_timed_in_rounds_with_a_paired_speedup(onnx_project):
     assert float(np.median(kept)) == pytest.approx(half["latency_ms"]["p50"], rel=1e-5)
     table = cli(onnx_project, "report").stdout
     assert f"{ratio['value']:.2f}× ±{ratio['ci_half']:.1%}" in table
-
-
-def test_retired_timing_settings_are_refused_with_what_replaced_them(onnx_project):
-    (onnx_project / "m.yaml").write_text(onnx_matrix_text(["tiny"], ["fp32"]).replace(
-        "timeout_s: 120", "timeout_s: 120, passes: 3, min_time_s: 1"))
-    run = cli(onnx_project, "run", "m.yaml")
-    assert run.returncode == 2 and "Traceback" not in run.stderr
-    for key in ("passes", "min_time_s"):
-        assert (f"settings.{key}: retired: timing is interleaved rounds now; set window_s, min_rounds"
-                in run.stderr)

@@ -4,10 +4,15 @@ overlap (one measuring cell per machine), both finish, and every cell is stored 
 from __future__ import annotations
 
 import json
+import os
+import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
+from bench_matrix.measure.env import host_name
 from bench_matrix.measure.machine_lock import LOCK_FILE
 from conftest import FAST_SETTINGS, cli, onnx_matrix_text, popen_cli
 from lock_helpers import flock_waiters, release, start_holder
@@ -32,9 +37,10 @@ def stored(project: Path, workspace: str) -> list[dict]:
     return json.loads(out.stdout)["records"]
 
 
-def run_both(project: Path, first: list[str], second: list[str]) -> None:
+def run_both(project: Path, first: list[str], second: list[str], locks: str = LOCK_FILE) -> list[str]:
     """Start two runs (sharing one lock directory) while the slot is held, let it go once both wait for it (so
-    their timing phases collide, however the machine delayed either), and wait for both to finish."""
+    their timing phases collide, however the machine delayed either) or for another of the `locks` (a glob of
+    that directory), and wait for both to finish; their outputs."""
     env = {"BENCH_MATRIX_LOCK_DIR": str(project / "lock")}
     holder = start_holder("the test", env=env)
     runs = [popen_cli(project, *args, env=env) for args in (first, second)]
@@ -42,7 +48,7 @@ def run_both(project: Path, first: list[str], second: list[str]) -> None:
     def both_waiting() -> bool:
         for proc in runs:
             assert proc.poll() is None, proc.communicate()[0]
-        return flock_waiters(project / "lock" / LOCK_FILE) == 2
+        return sum(flock_waiters(lock) for lock in (project / "lock").glob(locks)) == 2
 
     wait_for(both_waiting, "both runs waiting for the timing slot", timeout_s=300)
     release(holder)
@@ -50,6 +56,7 @@ def run_both(project: Path, first: list[str], second: list[str]) -> None:
     holder.wait(timeout=60)
     for proc, output in zip(runs, outputs):
         assert proc.returncode == 0, output
+    return outputs
 
 
 def assert_never_overlapping(records: list[dict]) -> None:
@@ -89,3 +96,56 @@ def test_two_runs_on_two_stores_time_one_cell_at_a_time(project: Path):
         assert sorted(map(key, records)) == sorted(CELLS) and all(r["status"] == "ok" for r in records)
         both += records
     assert_never_overlapping(both)
+
+
+def test_two_identical_runs_on_one_store_measure_each_cell_once_and_with_force_both(project: Path):
+    """Both have chosen their cells when one waits for the timing slot and the other for the first's store lock
+    of the model (without one: for the timing slot too); the second then says the first's are stored."""
+    run = ["--workspace", str(project / "ws"), "run", "m.yaml"]
+    outputs = run_both(project, run, run, "*.lock")
+    assert sum(done(out, "ok") for out in outputs) == len(CELLS)  # each cell measured once
+    assert sum(done(out, "already stored") for out in outputs) == len(CELLS)
+    meanwhile = "already stored (measured by another run meanwhile)"
+    assert sum(out.count(meanwhile) for out in outputs) == len(CELLS)
+    assert any("waiting for another run measuring it into" in out for out in outputs)
+    assert sorted(map(key, stored(project, "ws"))) == sorted(CELLS)
+    forced = run_both(project, *[[*run, "--force", "--model", "tiny"]] * 2)  # tiny's cells, measured by both
+    assert [done(out, "ok") for out in forced] == [2, 2] and "already stored (" not in "".join(forced)
+
+
+def done(output: str, what: str) -> int:
+    """A count of the run's closing line, `done: N ok, N skipped, N failed, N already stored`."""
+    return int(re.search(rf"(\d+) {what}", output.split("done:")[-1])[1])
+
+
+def test_job_files_a_killed_run_left_are_swept_by_the_next_and_a_live_processes_stay(project: Path):
+    killed = popen_cli(project, "run", "m.yaml", "--model", "tiny")
+    jobs = project / "ws" / "jobs"
+    wait_for(lambda: list(jobs.rglob("session-*.pickle")), "the run's sessions loading", timeout_s=300)
+    killed.kill()  # SIGKILL: nothing of it cleans up; its children end with it
+    killed.communicate(timeout=60)
+    left = [p for p in jobs.rglob("*") if p.is_file()]
+    assert left
+    live = left[0].with_name(f"job-{os.getpid()}-1.pickle")  # this test's process, alive: another run's
+    live.write_bytes(b"")
+    out = cli(project, "run", "m.yaml", "--model", "tiny")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert [p for p in jobs.rglob("*") if p.is_file()] == [live]
+
+
+def test_partial_files_of_an_ended_process_are_swept_by_the_next_run_and_a_live_processes_stay(project: Path):
+    ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                           text=True, check=True)
+    dead = int(ended.stdout)  # a conversion killed mid-write: its process is gone
+    partials = project / "ws" / "tmp" / host_name()
+    stale = [partials / f"partial-{dead}-0-0123abcd", partials / f"partial-{dead}-1-fp32.onnx"]
+    (stale[0] / "model").mkdir(parents=True)
+    (stale[0] / "model" / "model.onnx").write_bytes(b"\0" * 100)
+    stale[1].write_bytes(b"\0" * 100)
+    live = partials / f"partial-{os.getpid()}-0-fp32.onnx"  # this test's process, alive: another run's
+    live.write_bytes(b"")
+    out = cli(project, "run", "m.yaml", "--model", "tiny")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert list(partials.iterdir()) == [live]  # the stale ones and the run's own are gone
+    beside = [p for p in (project / "ws" / "cache").rglob("*") if "tmp" in p.name or "partial" in p.name]
+    assert not beside  # nothing was written in cache/ under a temporary name

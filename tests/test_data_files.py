@@ -357,10 +357,10 @@ def test_split_needs_enough_groups(tmp_path):
 # through the command line: exit 2, the file named, no traceback
 
 
-def run_with_dataset(project: Path, dataset: str) -> tuple[int, str]:
+def run_with_dataset(project: Path, dataset: str, command: str = "run") -> tuple[int, str]:
     (project / "m.yaml").write_text(matrix_text(["pytorch"], ["none"], ["fp32"], ["cpu"]).replace(
         "npz: data.npz", dataset))
-    out = cli(project, "run", "m.yaml")
+    out = cli(project, command, "m.yaml")
     assert "Traceback" not in out.stderr + out.stdout
     return out.returncode, out.stderr
 
@@ -377,12 +377,17 @@ def test_cli_truncated_npz_and_nan_labels_exit_2(tiny_project):
     assert code == 2 and f"{tiny_project / 'nan.npz'}: array 'y': sample 40 holds NaN or Inf" in err
 
 
-def test_cli_float_images_already_in_0_1_exit_2_without_a_scale(tiny_project):
+@pytest.mark.parametrize("command", ["plan", "run"])
+def test_cli_float_images_already_in_0_1_exit_2_without_a_scale(tiny_project, command):
+    """`plan` refuses what `run` would: the same check, before anything runs, at the dataset's line."""
     arrays = dict(np.load(tiny_project / "data.npz"))
     np.savez(tiny_project / "unit.npz", x=arrays["x"] / np.float32(255), y=arrays["y"])
-    code, err = run_with_dataset(tiny_project, "npz: unit.npz")
-    assert code == 2 and (f"{tiny_project / 'unit.npz'}: input 'x' holds float32 images with values 0 to 1 "
-                          f"(already in [0, 1])") in err and "set dataset.preprocess.scale" in err
+    code, err = run_with_dataset(tiny_project, "npz: unit.npz", command)
+    lines = (tiny_project / "m.yaml").read_text().splitlines()
+    line = next(i for i, text in enumerate(lines, 1) if text.startswith("dataset:"))
+    assert code == 2 and (f"m.yaml:{line}: dataset: {tiny_project / 'unit.npz'}: input 'x' "
+                          f"holds float32 images with values 0 to 1 (already in [0, 1])") in err
+    assert "set dataset.preprocess.scale" in err
 
 
 def test_cli_folder_with_a_corrupt_image_exits_2(tiny_project):

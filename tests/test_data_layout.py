@@ -58,8 +58,9 @@ def test_images_that_do_not_fit_say_which_layout_was_assumed(tmp_path: Path) -> 
     x = np.random.default_rng(0).integers(0, 256, (48, 8, 8, 3), dtype=np.uint8)
     plan = cli(_project(tmp_path, x), "plan", "m.yaml")
     assert plan.returncode == 2 and "Traceback" not in plan.stderr
-    assert ("m.yaml:2: models[0]: model tiny: the model's input X (3, 16, 16) float32 gets the data's 'x' "
-            "of shape (3, 8, 8) per sample; the data's 'x' (8, 8, 3) per sample was read as H×W×C images and "
-            "laid out C×H×W for the model (its layout: nchw); if the model takes H×W×C, set layout: nhwc on "
-            "the model, and data stored in the model's own per-sample shape is passed as it is"
+    assert ("m.yaml:2: models[0]: model tiny (tiny.onnx) with data.npz: the model's input X (3, 16, 16) "
+            "float32 gets the data's 'x' of shape (3, 8, 8) per sample; the data's 'x' (8, 8, 3) per sample "
+            "was read as H×W×C images and laid out C×H×W for the model (its layout: nchw); if the model "
+            "takes H×W×C, set layout: nhwc on the model, and data stored in the model's own per-sample shape "
+            "is passed as it is"
             ) in plan.stderr, plan.stderr

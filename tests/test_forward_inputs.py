@@ -116,16 +116,17 @@ PLAN = ("models:\n  - {{name: abc, framework: pytorch, factory: 'forward_models:
         "axes: {{backend: [pytorch], strategy: [none], precision: [fp32], target: [cpu]}}\n")
 DECLARED = ", inputs: [{name: c, shape: [4]}, {name: x, shape: [4]}, {name: b, shape: [4]}]"
 FORWARD = "forward(a, b=…, c=…) of factory 'forward_models:abc'"
+SOURCE = "(forward_models:abc + abc.pt) with data.npz"
 REFUSALS = [
-    ("cxb", "", f":2: models[0]: model abc: the data's arrays (c, x, b) are not all named after the "
+    ("cxb", "", f":2: models[0]: model abc {SOURCE}: the data's arrays (c, x, b) are not all named after the "
                 f"parameters of {FORWARD}, and the order of a file's arrays does not say which is which; "
                 f"rename the arrays after forward's parameters, or declare the model's `inputs:` in "
                 f"forward's order"),
-    ("cxb", DECLARED, f":2: models[0].inputs: model abc: the declared inputs (c, x, b) would reach "
+    ("cxb", DECLARED, f":2: models[0].inputs: model abc {SOURCE}: the declared inputs (c, x, b) would reach "
                       f"{FORWARD} by position, c as its parameter a; name every input after one of forward's "
                       f"parameters (each is then passed by name), or declare them in forward's order"),
-    ("bc", "", f":2: models[0]: model abc: {FORWARD} has no default for a, and the data's arrays (b, c) hold "
-               f"none of that name; add it to the data"),
+    ("bc", "", f":2: models[0]: model abc {SOURCE}: {FORWARD} has no default for a, and the data's arrays "
+               f"(b, c) hold none of that name; add it to the data"),
 ]
 
 

@@ -42,14 +42,14 @@ def test_artifact_size_sums_every_file_and_compresses(tmp_path):
 
 
 def test_artifact_size_is_kept_while_the_files_are_unchanged(tmp_path):
-    model, cache = tmp_path / "model", tmp_path / "size.json"
+    model, cache, partial = tmp_path / "model", tmp_path / "size.json", tmp_path / "partial-size.json"
     model.mkdir()
     (model / "a.bin").write_bytes(b"\0" * 10_000)
-    first = artifact_size(model, cache)
-    assert cache.is_file() and artifact_size(model, cache) == first
+    first = artifact_size(model, cache, partial)
+    assert cache.is_file() and not partial.exists() and artifact_size(model, cache) == first
     kept = cache.read_text()
     cache.write_text(kept.replace(f'"size_gzip_bytes": {first["size_gzip_bytes"]}', '"size_gzip_bytes": 7'))
     assert artifact_size(model, cache)["size_gzip_bytes"] == 7  # read back, not recomputed
     (model / "b.bin").write_bytes(b"\1" * 10)  # a new file (a TensorRT engine written at load): measured again
-    again = artifact_size(model, cache)
+    again = artifact_size(model, cache, partial)
     assert again["files"] == 2 and again["size_bytes"] == 10_010 and again["size_gzip_bytes"] > 7

@@ -187,3 +187,20 @@ def test_reading_inputs_of_a_damaged_file_names_it(tmp_path: Path) -> None:
     path.write_bytes(b"\x89PNG not a model")
     with pytest.raises(ModelFileError, match=f"{path}: is not a valid ONNX model: it is a PNG image"):
         read_inputs("onnx", "onnx", path)
+
+
+def test_static_int8_of_a_buffer_sliced_by_the_sequence_length(tmp_path: Path) -> None:
+    """torch.ao's FX tracer traces a buffer sliced by a traced size (BERT's position_ids[:, :seq_len]), which
+    it sliced in Python before ('slice indices must be integers'): the int8 module follows the float one."""
+    path = tmp_path / "positions.pt"
+    torch.save(tiny_models.positions().state_dict(), path)
+    ids = {"ids": TOKENS["ids"]}
+    source = _source(path, "state_dict", (TOKEN_SPECS[1],), "tiny_models:positions")
+    calibration = tiny_models.token_data(64, 1)["ids"]
+    meta = convert_with(calibration, BACKENDS["torchscript"], source, tmp_path / "int8", "ptq_static", "int8")
+    (got,) = BACKENDS["torchscript"].load(tmp_path / "int8", meta, "cpu", "int8", 1).predict(ids)
+    with torch.inference_mode():
+        expected = tiny_models.positions()(torch.from_numpy(ids["ids"])).numpy()
+    assert expected.std(axis=0).min() > 0.01  # outputs that follow the ids: the check is not vacuous
+    for column in range(expected.shape[1]):  # int8 rounding moves each output little against its spread
+        assert np.corrcoef(got[:, column], expected[:, column])[0, 1] > 0.95

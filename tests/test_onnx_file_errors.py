@@ -11,18 +11,21 @@ import numpy as np
 from conftest import FAST_SETTINGS, cli
 
 
-def _onnx(path: Path, batch: int | str, first: str = "ReduceMean") -> Path:
-    """(batch,3,8,8) -> (batch,2): `first` of X (ReduceMean over H and W), then a MatMul."""
+def _onnx(path: Path, batch: int | str, first: str = "ReduceMean", domain: str = "") -> Path:
+    """(batch,3,8,8) -> (batch,2): `first` of X (ReduceMean over H and W; an operator of `domain`), then a
+    MatMul."""
     import onnx
     from onnx import TensorProto, helper, numpy_helper
 
     reduce = {"axes": [2, 3], "keepdims": 0} if first == "ReduceMean" else {}
-    nodes = [helper.make_node(first, ["X"], ["M"], **reduce), helper.make_node("MatMul", ["M", "W"], ["Y"])]
+    nodes = [helper.make_node(first, ["X"], ["M"], domain=domain, **reduce),
+             helper.make_node("MatMul", ["M", "W"], ["Y"])]
     x = helper.make_tensor_value_info("X", TensorProto.FLOAT, [batch, 3, 8, 8])
     y = helper.make_tensor_value_info("Y", TensorProto.FLOAT, [batch, 2])
     weights = numpy_helper.from_array(np.full((3, 2), 0.5, np.float32), "W")
     graph = helper.make_graph(nodes, "g", [x], [y], [weights])
-    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8), str(path))
+    imports = [helper.make_opsetid("", 17), *([helper.make_opsetid(domain, 1)] if domain else [])]
+    onnx.save(helper.make_model(graph, opset_imports=imports, ir_version=8), str(path))
     return path
 
 
@@ -74,3 +77,15 @@ def test_an_unknown_operator_names_the_users_file_not_the_cache(tmp_path: Path) 
         assert f"{model}: a node uses operator NoSuchOp, which is not an ONNX operator" in record["reason"]
         assert "export the model again with standard ONNX operators" in record["reason"]
         assert "cache" not in record["reason"], record["reason"]
+
+
+def test_an_operator_no_runtime_has_names_the_users_file_not_the_cache(tmp_path: Path) -> None:
+    """An operator of a custom domain may be a runtime's own (com.microsoft's): only loading can tell. When
+    the runtime does not have it, the reason names the user's file, never the workspace's converted copy."""
+    model = _onnx(tmp_path / "custom.onnx", "N", first="NoSuchOp", domain="custom.ops")
+    project = _project(tmp_path, model)
+    assert cli(project, "run", "m.yaml").returncode == 0
+    for record in _records(project):
+        assert record["status"] == "failed" and "\n" not in record["reason"]
+        assert f"{model}: onnxruntime cannot load it" in record["reason"], record["reason"]
+        assert "custom.ops:NoSuchOp" in record["reason"] and "cache" not in record["reason"], record["reason"]

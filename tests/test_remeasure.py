@@ -115,3 +115,21 @@ def test_a_side_whose_artifact_is_gone_is_judged_on_its_stored_samples(two_runs:
     assert os.fspath(artifact) in out.stderr, out.stderr
     result = json.loads(out.stdout)
     assert not result["remeasured"] and _p50(result)["name"] == "latency_ms.p50", result
+
+
+def test_each_side_is_scored_against_its_own_baseline(onnx_project: Path) -> None:
+    """Two networks of one cell (the baseline itself), without labels: remeasured, each side's outputs agree
+    with its own baseline's, as the stored comparison says, not with the other network's."""
+    (onnx_project / "m.yaml").write_text(onnx_matrix_text(["dense"], ["fp32"]).replace(
+        "file: tiny.onnx}", "file: dense.onnx, task: none}").split("settings:")[0] + ROUNDS)
+    for label, hidden in (("small", 96), ("large", 384)):
+        (onnx_project / "dense.onnx").write_bytes(_model(hidden, 3))
+        out = cli(onnx_project, "run", "m.yaml", "--label", label)
+        assert out.returncode == 0, out.stdout + out.stderr
+    for remeasure in ([], ["--remeasure"]):
+        result = _json(cli(onnx_project, "compare", "small", "large", *remeasure, "--format", "json"), 1)
+        (cell,) = result["cells"]
+        accuracy = cell["metrics"]["accuracy"]
+        assert accuracy["name"] == "cosine_similarity", accuracy
+        assert accuracy["base"] == pytest.approx(1, abs=1e-6), accuracy
+        assert accuracy["new"] == pytest.approx(1, abs=1e-6), accuracy

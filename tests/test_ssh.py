@@ -117,13 +117,41 @@ def test_device_check_says_what_the_device_runs_and_what_it_lacks(onnx_project, 
     out = _ok(cli(onnx_project, "device", "check", *check[1:]))
     assert "host device-c" in out and "bench-matrix 0.1.0 (the same as here" in out
     assert "power mode   NV Power Mode: MAXN 0" in out and "clocks" in out
-    assert "onnxruntime: cpu: ready" in out and "cpu " in out and "usable" in out
+    assert "onnxruntime: cpu: ready" in out and "cpu " in out
+    assert f"usable: `bench-matrix run MATRIX --executor ssh --device {server.device}={python}`" in out
 
     bare = cli(onnx_project, "device", "check", f"{server.device}=/usr/bin/python3", *check[2:])
     assert bare.returncode == 1 and "bench-matrix is not installed" in bare.stderr
-    assert "-m pip install 'bench-matrix==0.1.0'" in bare.stderr
+    user_host, port = server.device.rsplit(":", 1)
+    assert f"ssh -p {port} {user_host} /usr/bin/python3 -m pip install 'bench-matrix==0.1.0'" in bare.stderr
     missing = cli(onnx_project, "device", "check", f"{server.device}=/no/python", *check[2:])
     assert missing.returncode == 1 and "'/no/python' was not found" in missing.stderr
+
+
+def test_a_device_whose_workspace_cannot_be_written_fails_its_cells_and_the_run(onnx_project, server):
+    """The device's workspace under a file: no user, root included, can create it."""
+    (onnx_project / "m.yaml").write_text(onnx_matrix_text(["tiny"], ["fp32"]))
+    python = device_python(onnx_project / "device-python", "device-e", onnx_project / "device-lock")
+    (onnx_project / "file").write_text("")
+    options = _ssh(server, python, onnx_project / "file" / "device")
+    check = cli(onnx_project, "device", "check", *options[3:])
+    assert check.returncode == 1 and "probing the backends there failed" in check.stdout
+    out = cli(onnx_project, "run", "m.yaml", *options)
+    assert out.returncode == 1 and "1 failed" in out.stdout and "0 skipped" in out.stdout, out.stdout
+    assert f"device {server.device} cannot measure: probing it failed" in out.stdout
+    [record] = _records(onnx_project / "ws" / "results.sqlite")
+    assert record["status"] == "failed" and "probing it failed" in record["reason"]
+    assert record["host"] == "device-e"
+
+
+def test_each_models_rounds_show_under_its_own_name(onnx_project, server):
+    """The first model's rounds run on the device while this machine prepares the second."""
+    (onnx_project / "m.yaml").write_text(onnx_matrix_text(["tiny", "twin"], ["fp32"]))
+    python = device_python(onnx_project / "device-python", "device-f", onnx_project / "device-lock")
+    out = _ok(cli(onnx_project, "run", "m.yaml", *_ssh(server, python, onnx_project / "device")))
+    rounds = [line.split("] ", 1)[1] for line in out.splitlines() if line.endswith(": round 1")]
+    assert sorted(rounds) == [f"{model} · measuring 1 cells in rounds · {server.device}: round 1"
+                              for model in ("tiny", "twin")]
 
 
 def test_an_unreachable_device_fails_its_cells_and_a_refused_login_stops_first(onnx_project, server,
@@ -132,10 +160,11 @@ def test_an_unreachable_device_fails_its_cells_and_a_refused_login_stops_first(o
     python = device_python(onnx_project / "device-python", "device-d", onnx_project / "device-lock")
     closed = device_at(free_port())  # nothing listens there
     options = _ssh(server, python, onnx_project / "device", device=closed)
-    out = _ok(cli(onnx_project, "run", "m.yaml", *options))
+    out = cli(onnx_project, "run", "m.yaml", *options)
     [record] = _records(onnx_project / "ws" / "results.sqlite")
-    assert "1 failed" in out and record["status"] == "failed"
+    assert out.returncode == 1 and "1 failed" in out.stdout and record["status"] == "failed"
     assert f"device {closed} is unreachable" in record["reason"] and "refused" in record["reason"]
+    assert f"device {closed} is unreachable" in out.stdout
     check = cli(onnx_project, "device", "check", *options[3:])
     assert check.returncode == 2 and "is unreachable" in check.stderr
 

@@ -3,9 +3,12 @@ raw samples, formats refused or migrated."""
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import resource
 import shutil
+import signal
 import sqlite3
 from contextlib import closing
 from pathlib import Path
@@ -195,3 +198,58 @@ def test_ok_records_of_more_cells_than_one_query_may_name_come_back_oldest_first
     found = store.ok_records(c.key for c in cells[:1100])
     assert [r.cell for r in found] == list(reversed(cells[:1100])) and all(r.status == "ok" for r in found)
     store.close()
+
+
+def _filled(tmp_path: Path) -> tuple[ResultStore, int]:
+    """A store holding one run and one record; the run's id."""
+    store = ResultStore(tmp_path / "r.sqlite")
+    run = store.begin_run("m.yaml", "h", {})
+    store.put(_record(CELL, run.id, "failed", reason="kept"))
+    return store, run.id
+
+
+def _intact(tmp_path: Path) -> None:
+    store = ResultStore(tmp_path / "r.sqlite", readonly=True)
+    assert [r.reason for r in store.records()] == ["kept"]
+    store.close()
+
+
+def test_a_full_disk_is_named_with_its_folder_and_the_store_is_left_intact(tmp_path):
+    """SQLITE_FULL (what SQLite says when a write meets ENOSPC; here its page limit) is a full disk."""
+    store, run = _filled(tmp_path)
+    pages = store._db.execute("PRAGMA page_count").fetchone()[0]
+    store._db.execute(f"PRAGMA max_page_count = {pages}")
+    with pytest.raises(UserError) as error:
+        store.put(_record(OTHER, run, "failed", reason="x" * 200_000))
+    store.close()
+    message = str(error.value)
+    assert f"the disk holding {tmp_path} is full (" in message and "MB free); the store is intact" in message
+    assert "--results" in message and "repair" not in message
+    _intact(tmp_path)
+
+
+def test_an_io_error_where_the_quota_is_spent_says_so(tmp_path, monkeypatch):
+    """A write past the file size limit is a real SQLITE_IOERR; the trial write beside the store meets EDQUOT
+    (injected), the error a write over the user's quota gets."""
+    store, run = _filled(tmp_path)
+    size = sum(p.stat().st_size for p in tmp_path.iterdir())
+
+    def over_quota(fd: int, data: bytes) -> int:
+        raise OSError(errno.EDQUOT, os.strerror(errno.EDQUOT))
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails with EFBIG instead
+    resource.setrlimit(resource.RLIMIT_FSIZE, (size, hard))
+    try:
+        monkeypatch.setattr(os, "write", over_quota)
+        with pytest.raises(UserError) as error:
+            store.put(_record(OTHER, run, "failed", reason="x" * 200_000))
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, previous)
+    monkeypatch.undo()
+    store.close()
+    message = str(error.value)
+    assert "disk I/O error" in message and f"the disk holding {tmp_path} is over your disk quota" in message
+    assert "repair" not in message and not list(tmp_path.glob(".bench-matrix-trial-*"))
+    _intact(tmp_path)

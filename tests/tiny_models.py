@@ -119,3 +119,24 @@ def token_data(n: int, seed: int) -> dict[str, "np.ndarray"]:
     rng = np.random.default_rng(seed)
     return {"features": rng.standard_normal((n, FEATURES)).astype(np.float32),
             "ids": rng.integers(0, VOCABULARY, (n, TOKENS)).astype(np.int64)}
+
+
+def positions() -> "nn.Module":
+    """forward(ids int64 (5,)) -> 2, with BERT's embeddings: a position_ids buffer sliced by the length read
+    from the ids' shape, each position's embedding added to its token's."""
+    import torch
+    from torch import nn
+
+    class Positions(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.register_buffer("position_ids", torch.arange(32).expand(1, -1), persistent=False)
+            self.words, self.places = nn.Embedding(VOCABULARY, 16), nn.Embedding(32, 16)
+            self.dense, self.head = nn.Linear(16, 16), nn.Linear(16, 2)
+
+        def forward(self, ids: torch.Tensor) -> torch.Tensor:
+            places = self.position_ids[:, :ids.size(1)]
+            return self.head(torch.relu(self.dense(self.words(ids) + self.places(places))).mean(1))
+
+    torch.manual_seed(0)
+    return Positions().eval()

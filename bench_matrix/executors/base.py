@@ -81,5 +81,9 @@ class Executor(ABC):
     def ended(self, wait: bool) -> Iterator[Ended]:
         """Work as each piece ends: what has ended so far, or (`wait`) every piece still due."""
 
+    def lost(self) -> dict[str, str]:
+        """The machines that could not run the work given them (its cells failed), each with why."""
+        return {}
+
     def close(self) -> None:
         """Stop whatever still runs and let go of the machines."""

@@ -62,7 +62,7 @@ def unpack(shipments: dict[str, Shipment], ws: Workspace) -> dict[str, str]:
         final = shipped_folder(ws, shipment.key)
         if not final.is_dir():
             data = ray.get(shipment.ref)
-            extract(data if shipment.member is None else data[shipment.member], final)
+            extract(data if shipment.member is None else data[shipment.member], final, ws)
         moved[driver_path] = str(final / shipment.name)
     return moved
 
@@ -74,6 +74,7 @@ def run_on_node(job: Job, limits: Limits, shipments: dict[str, Shipment],
     import ray
 
     begin, ws = time.time(), node_workspace()
+    ws.sweep()  # what a killed run left on this node
     moved = unpack(shipments, ws)
     here = relocate(job, moved, ws)
     unpacked = time.time()

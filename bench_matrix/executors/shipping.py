@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import io
-import os
 import shutil
 import tarfile
 from collections.abc import Callable, Sequence
@@ -46,11 +45,10 @@ def _bare(info: tarfile.TarInfo) -> tarfile.TarInfo:
     return info
 
 
-def extract(data: bytes, final: Path) -> None:
-    """Tar bytes unpacked into the folder `final`, which appears whole or not at all."""
-    tmp = final.with_name(f"{final.name}.tmp{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
+def extract(data: bytes, final: Path, ws: Workspace) -> None:
+    """Tar bytes unpacked into the folder `final` of `ws`, which appears whole or not at all."""
+    tmp = ws.partial(final)
+    tmp.mkdir()
     with tarfile.open(fileobj=io.BytesIO(data), mode="r") as tar:
         tar.extractall(tmp, filter="data")
     try:

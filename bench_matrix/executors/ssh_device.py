@@ -43,8 +43,9 @@ def missing(ws: Workspace, keys: list[str]) -> list[str]:
 def run(ws: Workspace, request: dict[str, Any]) -> dict[str, Any]:
     """Unpack what was shipped, run the job here with its paths moved into this workspace; how it ended, its
     result naming the sender's paths again."""
+    ws.sweep()  # what a killed run left here
     for key, data in request["payloads"].items():
-        extract(data, shipped_folder(ws, key))
+        extract(data, shipped_folder(ws, key), ws)
     moved = {path: str(shipped_folder(ws, key) / name) for path, (key, name) in request["files"].items()}
     job, limits = relocate(request["job"], moved, ws), request["limits"]
     limits = replace(limits, log=ws.logs / limits.log.name)

@@ -25,6 +25,8 @@ from bench_matrix.measure import env as environment
 from bench_matrix.plan import Plan
 from bench_matrix.workspace import Workspace
 
+Judged = tuple[str, str | None]  # a device's state of a cell (run, skip, invalid) and why
+
 
 @dataclass(frozen=True)
 class SshOptions:
@@ -46,7 +48,8 @@ class SshExecutor(Executor):
         self.links = {d.name: Link(d, options.workspace, options.config, self._control)
                       for d in options.devices}
         self.hostnames: dict[str, str] = {}  # device -> the host its records carry
-        self.down: dict[str, str] = {}  # device -> why it cannot be reached
+        self.down: dict[str, str] = {}  # device -> why it cannot measure (unreachable, or its probe failed)
+        self.failed_on: set[str] = set()  # the devices in `down` that cells were given to
         self._able: dict[str, list[str]] = {}  # cell key -> the devices that can measure it
         self._flights: list[Flight] = []  # running or queued, in order
         self._ended: list[Ended] = []
@@ -66,8 +69,10 @@ class SshExecutor(Executor):
 
     def decide(self, plan: Plan, cells: list[CellPlan]) -> list[CellPlan]:
         """Probe every reachable device; a cell runs on the devices that can run it (else on one that cannot
-        be reached, where it fails), or is skipped with each device's reason."""
-        states = {name: self._probe(name, plan, cells) for name in self.hostnames}
+        measure, unreachable or its probe failed, where it fails), or is skipped with each device's
+        reason."""
+        probed = {name: self._probe(name, plan, cells) for name in self.hostnames}
+        states = {name: found for name, found in probed.items() if found is not None}
         decided = []
         for p in cells:
             if p.state not in ("run", "skip"):
@@ -80,8 +85,9 @@ class SshExecutor(Executor):
                            replace(p, state="skip", reason=_reasons(judged)))
         return decided
 
-    def _probe(self, name: str, plan: Plan, cells: list[CellPlan]) -> dict[Any, tuple[str, str | None]]:
-        """The device's judgement (state, reason) of each cell, from the probe job run there."""
+    def _probe(self, name: str, plan: Plan, cells: list[CellPlan]) -> dict[Any, Judged] | None:
+        """The device's judgement (state, reason) of each cell, from the probe job run there; None when the
+        probe failed (the device is noted as one that cannot measure)."""
         matrix = plan.matrix
         keys = tuple(sorted({verdict_key(matrix, p.cell) for p in cells}))
         training = tuple(sorted({k for p in cells if (k := training_key(matrix, p.cell))}))
@@ -90,7 +96,8 @@ class SshExecutor(Executor):
                         self.hostnames[name], lambda _: None)
         ended = flight.wait()
         if not ended.ok:
-            return {p.cell: ("skip", f"probing the device failed: {ended.error}") for p in cells}
+            self.down[name] = f"device {name} cannot measure: probing it failed: {ended.error}"
+            return None
         expansion = judge(matrix, [p.cell for p in cells], 0, ended.result.verdicts, ended.result.trainers)
         return {q.cell: (q.state, q.reason) for q in expansion.cells}
 
@@ -149,7 +156,11 @@ class SshExecutor(Executor):
                 for key, _ in selector.select(None if wait else 0):
                     key.fileobj.read()
 
+    def lost(self) -> dict[str, str]:
+        return {device: self.down[device] for device in sorted(self.failed_on)}
+
     def _failed(self, work: Work, device: str, reason: str) -> Ended:
+        self.failed_on.add(device)
         env = {**environment.capture(), "host": self.hostnames.get(device, device)}
         return Ended(work, (work.job,), (), reason, env=env, where=device)
 
@@ -162,7 +173,7 @@ class SshExecutor(Executor):
         shutil.rmtree(self._control, ignore_errors=True)
 
 
-def _reasons(judged: dict[str, tuple[str, str | None]]) -> str:
+def _reasons(judged: dict[str, Judged]) -> str:
     """Why no device can run a cell: each distinct reason, after the devices it concerns."""
     by_reason: dict[str, list[str]] = {}
     for name, (_, reason) in judged.items():

@@ -58,9 +58,16 @@ class Device:
         return f"{self.target}:{self.port}" if self.port else self.target
 
     @property
+    def argument(self) -> str:
+        """The device as `--device` takes it again: with its Python unless that is the default."""
+        return self.name if self.python == DEFAULT_PYTHON else f"{self.name}={self.python}"
+
+    @property
     def install(self) -> str:
-        """The line that installs this bench-matrix on the device."""
-        return f"ssh {self.target} {self.python} -m pip install 'bench-matrix=={__version__}'"
+        """The line that installs this bench-matrix on the device, with its port and its Python."""
+        port = f"-p {self.port} " if self.port else ""
+        return (f"ssh {port}{shlex.quote(self.target)} {shlex.quote(self.python)} -m pip install "
+                f"'bench-matrix=={__version__}'")
 
 
 @dataclass(frozen=True)

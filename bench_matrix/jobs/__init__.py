@@ -16,6 +16,7 @@ from bench_matrix.jobs.results import (
     PreparedData,
     PreparedModel,
     Probe,
+    Reference,
 )
 from bench_matrix.matrix.expand import TrainingKey, VerdictKey
 from bench_matrix.matrix.spec import DatasetSpec, ModelSpec, Settings, StrategySpec
@@ -91,6 +92,25 @@ class ModelJob(Job):
 
     def reads(self) -> tuple[Path, ...]:
         return tuple(p for p in (self.data.directory, self.model.file, self.model.weights) if p is not None)
+
+
+@dataclass(frozen=True)
+class ReferenceJob(Job):
+    """The fp32 outputs of a baseline's converted artifact on the test split: the reference of one side of a
+    comparison, whose source may have changed since (compare --remeasure)."""
+
+    name = "reference"
+    function = "bench_matrix.jobs.prepare:reference_outputs"
+    result = Reference
+    baseline: Cell
+    converted: Converted
+    source: SourceModel
+    data: PreparedData
+    layout: str
+    settings: Settings
+
+    def reads(self) -> tuple[Path, ...]:
+        return self.converted.directory, self.data.directory
 
 
 @dataclass(frozen=True)

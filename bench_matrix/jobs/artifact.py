@@ -4,7 +4,6 @@ over many samples."""
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import time
 from datetime import datetime, timezone
@@ -42,9 +41,9 @@ def ensure_artifact(ws: Workspace, backend: Backend, source: SourceModel, step: 
     final = ws.artifact(backend.name, key)
     if (final / "manifest.json").is_file():
         return Converted(final, json.loads((final / "manifest.json").read_text()), True)
-    tmp = final.with_name(f"{final.name}.tmp{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
+    tmp, scratch = ws.partial(final), ws.partial(final.with_name("scratch"))
     (tmp / "model").mkdir(parents=True)
+    scratch.mkdir()
 
     reads: list[tuple[int, int]] = []  # (asked, given) of each read of the calibration split
 
@@ -57,13 +56,16 @@ def ensure_artifact(ws: Workspace, backend: Backend, source: SourceModel, step: 
     shared.mkdir(parents=True, exist_ok=True)
     request = ConvertRequest(source=source, step=step, precision=precision, target=target, out_dir=tmp / "model",
                              calibration=calibration, threads=settings.threads, seed=settings.seed,
-                             shared_dir=shared, max_batch=settings.batch_size, options=options)
+                             shared_dir=shared, max_batch=settings.batch_size, options=options,
+                             scratch_dir=scratch)
     begin = time.perf_counter()
     try:
         meta = backend.convert(request)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
     manifest = {"meta": meta, "convert_s": time.perf_counter() - begin, "params": _params(ws, source),
                 "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                 "versions": backend.versions(), "source_sha256": source.sha256, "step": step.to_dict(),
@@ -98,8 +100,7 @@ def _params(ws: Workspace, source: SourceModel) -> int:
     if kept.is_file():
         return int(json.loads(kept.read_text()))
     params = _count_params(source)
-    kept.parent.mkdir(parents=True, exist_ok=True)
-    partial = kept.with_name(f"{kept.name}.tmp{os.getpid()}")
+    partial = ws.partial(kept)
     partial.write_text(json.dumps(params))
     partial.replace(kept)  # a reader never sees a half-written count
     return params

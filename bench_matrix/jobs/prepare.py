@@ -11,22 +11,23 @@ from typing import Any
 import numpy as np
 
 from bench_matrix import data
+from bench_matrix.backend import Backend
 from bench_matrix.cell import NO_STEP
 from bench_matrix.errors import UserError
 from bench_matrix.images import layout_note
 from bench_matrix.phases import phase
-from bench_matrix.jobs import DatasetJob, FinetuneJob, ModelJob
+from bench_matrix.jobs import DatasetJob, FinetuneJob, ModelJob, ReferenceJob
 from bench_matrix.jobs.artifact import ensure_artifact, predict_all
 from bench_matrix.jobs.keys import builtin_key, finetune_key, model_key
-from bench_matrix.jobs.results import Finetuned, PreparedData, PreparedModel
-from bench_matrix.matrix.spec import ModelSpec
+from bench_matrix.jobs.results import Converted, Finetuned, PreparedData, PreparedModel, Reference
+from bench_matrix.matrix.spec import ModelSpec, Settings
 from bench_matrix.measure import env as environment
 from bench_matrix.measure.metrics import evaluate, non_finite_reason
 from bench_matrix.registry import load_backend
 from bench_matrix.sources import SourceModel
 from bench_matrix.sources.code import model_code
-from bench_matrix.tensors import TensorSpec, binding_problem, bind, take
-from bench_matrix.workspace import Workspace, file_sha256
+from bench_matrix.tensors import TensorSpec, binding_problem, bind, fed, open_axes, take
+from bench_matrix.workspace import Workspace, digest, file_sha256
 
 
 def prepare_dataset(job: DatasetJob) -> PreparedData:
@@ -50,16 +51,14 @@ def prepare_model(job: ModelJob) -> PreparedModel:
     if (out / "prepared.json").is_file():  # paths are derived afresh: the workspace may be named otherwise now
         source, _ = _source(spec, ws, prepared, settings.seed, inputs)
         info = json.loads((out / "prepared.json").read_text())["info"]
-        return PreparedModel(source, info, out / "reference.npz")
+        return PreparedModel(source, {**info, **_timed(spec, prepared, inputs)}, out / "reference.npz")
     phase("prepare")
     _check_binding(spec, prepared, inputs)
     source, training = _source(spec, ws, prepared, settings.seed, inputs)
     baseline = load_backend(job.baseline.backend)
     converted = ensure_artifact(ws, baseline, source, NO_STEP, "fp32", "cpu", prepared, spec.layout, settings,
                                 {})
-    session = baseline.load(converted.model, converted.manifest["meta"], "cpu", "fp32", settings.threads)
-    x, y = data.load_split(prepared.directory, "test", prepared.preprocess, spec.layout, settings.eval_samples)
-    outputs = predict_all(session, bind(x, inputs), settings.batch_size)
+    outputs, y = _baseline_outputs(baseline, converted, source, inputs, prepared, spec.layout, settings)
     if reason := non_finite_reason(outputs):
         raise UserError(f"model {spec.name}: its fp32 outputs on the test split are not finite ({reason})")
     _check_outputs(spec, job.task, outputs, y, prepared.info)
@@ -69,11 +68,49 @@ def prepare_model(job: ModelJob) -> PreparedModel:
             "sha256": source.sha256, "baseline_key": job.baseline.key, "task": job.task,
             "inputs": [i.to_dict() for i in inputs], "outputs": [list(o.shape[1:]) for o in outputs],
             "test_metrics": evaluate(job.task, outputs, y, None), "test_samples": int(len(outputs[0])),
-            "training": training, **_chance(prepared.info)}
+            "training": training, **_chance(prepared.info), **_timed(spec, prepared, inputs)}
     if job.task == "regression":
         info["test_mse"] = info["test_metrics"]["mse"]
     (out / "prepared.json").write_text(json.dumps({"info": info}, indent=1))
     return PreparedModel(source, info, out / "reference.npz")
+
+
+def reference_outputs(job: ReferenceJob) -> Reference:
+    """The baseline artifact's fp32 outputs on the test split, kept by the artifact's folder and the data."""
+    phase("reference")
+    settings = job.settings
+    out = job.workspace.references(digest([str(job.converted.directory), job.data.fingerprint, job.layout,
+                                           settings.eval_samples, settings.batch_size]))
+    if not (out / "reference.npz").is_file():
+        outputs, _ = _baseline_outputs(load_backend(job.baseline.backend), job.converted, job.source,
+                                       job.source.inputs, job.data, job.layout, settings)
+        partial = job.workspace.partial(out / "reference.npz")
+        np.savez(partial, *outputs)
+        partial.replace(out / "reference.npz")
+    return Reference(out / "reference.npz")
+
+
+def _baseline_outputs(baseline: Backend, converted: Converted, source: SourceModel,
+                      inputs: tuple[TensorSpec, ...], prepared: PreparedData, layout: str, settings: Settings
+                      ) -> tuple[list[np.ndarray], np.ndarray | None]:
+    """The baseline artifact's outputs on the test split (settings.eval_samples of it), and its labels."""
+    try:
+        session = baseline.load(converted.model, converted.manifest["meta"], "cpu", "fp32", settings.threads)
+    except Exception as exc:  # e.g. an operator of a custom domain the runtime does not have
+        said = str(exc).replace(str(converted.model), "its converted copy")
+        raise RuntimeError(f"{source.origin or source.path}: {baseline.name} cannot load it: {said}") from exc
+    x, y = data.load_split(prepared.directory, "test", prepared.preprocess, layout, settings.eval_samples)
+    return predict_all(session, bind(x, inputs), settings.batch_size), y
+
+
+def _timed(spec: ModelSpec, prepared: PreparedData, inputs: tuple[TensorSpec, ...]) -> dict[str, Any]:
+    """The shapes the inputs are timed at (the data's, per sample) and the open axes of each that synthetic
+    data gave the default length."""
+    given = {i.name: i for i in data.data_inputs(prepared.info, spec.layout)}
+    synthetic = prepared.info.get("kind") == "synthetic"
+    timed = [{"name": i.name, "shape": list(i.shape), "dtype": i.dtype} for i in fed(given, inputs)]
+    return {"timed_inputs": timed,
+            "defaulted_axes": {i.name: list(open_axes(i)) for i in inputs if synthetic and open_axes(i)}}
 
 
 def _chance(info: dict[str, Any]) -> dict[str, Any]:
@@ -117,8 +154,7 @@ def finetune(job: FinetuneJob) -> Finetuned:
     final = ws.finetuned(key)
     if not (final / "finetuned.json").is_file():
         phase("finetune")
-        tmp = final.with_name(f"{final.name}.tmp{os.getpid()}")
-        shutil.rmtree(tmp, ignore_errors=True)
+        tmp = ws.partial(final)
         (tmp / "model").mkdir(parents=True)
 
         def train(fraction: float) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -177,8 +213,10 @@ def _trained_builtin(spec: ModelSpec, ws: Workspace, prepared: PreparedData, see
         x, y = data.load_split(prepared.directory, "train", prepared.preprocess, spec.layout)
         x = bind(x, inputs)
         threads = len(os.sched_getaffinity(0))
-        facts = (train_keras(spec.builtin, x, y, spec.training, seed, model_file, threads) if keras else
-                 train_torch(FACTORIES[spec.builtin], x, y, spec.training, seed, model_file, threads))
+        partial = ws.partial(model_file)
+        facts = (train_keras(spec.builtin, x, y, spec.training, seed, partial, threads) if keras else
+                 train_torch(FACTORIES[spec.builtin], x, y, spec.training, seed, partial, threads))
+        partial.replace(model_file)
         facts_file.write_text(json.dumps(facts))
     facts = json.loads(facts_file.read_text())
     if keras:

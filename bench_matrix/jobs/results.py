@@ -75,6 +75,16 @@ class PreparedModel(Result):
 
 
 @dataclass(frozen=True)
+class Reference(Result):
+    """The reference job's result: the fp32 outputs of a baseline's artifact on the test split."""
+
+    outputs: Path
+
+    def files(self) -> tuple[Path, ...]:
+        return (self.outputs,)
+
+
+@dataclass(frozen=True)
 class Finetuned(Result):
     """The fine-tune job's result: the fine-tuned source and the trainer's facts."""
 

@@ -11,7 +11,8 @@ from typing import Any
 
 from bench_matrix.errors import UserError
 from bench_matrix.matrix.spec import DEFAULT_LAYOUT, MODEL_SUFFIXES, file_kind
-from bench_matrix.tensors import DTYPES, TensorSpec
+from bench_matrix.tensors import DTYPES, OPEN_LENGTH, TensorSpec, axes_text, concrete, open_axes, \
+    shape_text
 
 CONVERSIONS = ("none", "ptq_dynamic", "ptq_static")  # the strategies that need no training
 SAMPLES = 256  # synthetic samples, split so that static quantisation calibrates on 100 (its default)
@@ -122,8 +123,8 @@ def matrix_text(request: Request, found: Found) -> str:
         raise UserError(f"{request.path}: cannot read the model's inputs from the file ({why}); give them "
                         f"with --input NAME:SHAPE:DTYPE (repeatable, e.g. --input x:3,224,224:float32), or "
                         f"give data with --data (an .npz or an image folder)")
-    return "".join([_header(request, found, inputs), _model(request), _dataset(request, inputs),
-                    _axes(found), _settings(found)])
+    return "".join([_header(request, found, inputs), _model(request, inputs),
+                    _dataset(request, inputs), _axes(found), _settings(found)])
 
 
 def axes(found: Found) -> dict[str, list[str]]:
@@ -149,14 +150,32 @@ def _header(request: Request, found: Found, inputs: tuple[TensorSpec, ...] | Non
              "# `bench-matrix plan` marks what a backend does not implement as not valid (never run).",
              "# Edit it, then: bench-matrix plan FILE; bench-matrix run FILE"]
     lines += [f"# Left out: {name}: {why}" for name, why in found.left_out.items()]
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + _timed(request, inputs)) + "\n"
 
 
-def _model(request: Request) -> str:
+def _timed(request: Request, inputs: tuple[TensorSpec, ...] | None) -> list[str]:
+    """What the inputs are timed at: the data's shapes, or synthetic ones (open axes given OPEN_LENGTH)."""
+    if request.data is not None:
+        return ["# Inputs are timed at the shapes of the data's arrays."]
+    shapes = ", ".join(f"{s.name} {shape_text(concrete(s.shape))} {s.dtype}" for s in inputs or ())
+    return [f"# Synthetic inputs are timed at {shapes} per sample."] + [
+        f"# {s.name}: {axes_text(open_axes(s))} open in the file (the batch axis is 0), given {OPEN_LENGTH} "
+        f"by synthetic data; set the lengths under inputs: below." for s in _defaulted(request, inputs)]
+
+
+def _defaulted(request: Request, inputs: tuple[TensorSpec, ...] | None) -> tuple[TensorSpec, ...]:
+    """The inputs with an open axis that synthetic data would give the default length."""
+    return () if request.data is not None else tuple(s for s in inputs or () if open_axes(s))
+
+
+def _model(request: Request, inputs: tuple[TensorSpec, ...] | None) -> str:
     text = (f"models:\n  - name: {json.dumps(model_name(request.path))}\n"
             f"    framework: {request.framework}\n    file: {json.dumps(str(request.path))}\n")
     if request.inputs:
         text += "    inputs:\n" + "".join(f"      - {_input(s)}\n" for s in request.inputs)
+    elif _defaulted(request, inputs):  # every input, in order: inputs: replaces what the file says
+        text += (f"    # inputs:   # replace each null by the length to time (synthetic data gives it "
+                 f"{OPEN_LENGTH})\n" + "".join(f"    #   - {_input(s)}\n" for s in inputs or ()))
     return text
 
 

@@ -21,6 +21,7 @@ from bench_matrix.matrix.schema import (
 )
 from bench_matrix.matrix.extended import axis_values, installed_schema
 from bench_matrix.matrix.require import declared
+from bench_matrix.matrix.retired import current
 from bench_matrix.matrix.spec import (
     DEFAULT_LAYOUT,
     MODEL_SUFFIXES,
@@ -87,12 +88,10 @@ def describe(error: jsonschema.ValidationError, report: Located) -> None:
     at = tuple(error.absolute_path)
     schema, value, kind = error.schema, error.instance, error.validator
     if kind == "additionalProperties" and isinstance(value, dict):
-        allowed = sorted(schema.get("properties", {}))
+        known = schema.get("properties", {})
+        allowed = sorted(k for k, rule in known.items() if not rule.get("deprecated"))
         patterns = list(schema.get("patternProperties", {}))
-        for key in [k for k in value if k not in allowed and not any(re.search(p, k) for p in patterns)]:
-            if key in schema.get("x-retired", {}):
-                report.add(at + (key,), schema["x-retired"][key])
-                continue
+        for key in [k for k in value if k not in known and not any(re.search(p, k) for p in patterns)]:
             none = schema.get("x-message", "no keys are allowed here")
             hint = f"allowed: {', '.join(allowed)}" if allowed else none
             report.add(at + (key,), f"unknown key '{key}'; {hint}{suggest(key, allowed)}")
@@ -183,11 +182,12 @@ def _build(path: Path, data: dict[str, Any], lines: dict, report: Located, backe
     loading = Loading(models, dataset, known, report)
     scenarios = {s.name: s.read(data[s.name], loading) for s in selectable() if s.name in data}
     options = {name: dict(given) for name, given in data.get("backend_options", {}).items()}
+    settings = current(data.get("settings", {}), report)
     return Matrix(path=path, name=data.get("name", path.stem), models=models, dataset=dataset,
                   strategies=strategies, axes=axes, include=selectors["include"],
-                  exclude=selectors["exclude"], settings=Settings(**data.get("settings", {})),
+                  exclude=selectors["exclude"], settings=Settings(**settings),
                   backend_options=options, metrics=tuple(data.get("metrics", ())), scenarios=scenarios,
-                  requirements=declared(data, report), lines=lines)
+                  requirements=declared(data, report), lines=lines, warnings=tuple(report.warnings))
 
 
 def _check_metrics(names: list[str], report: Located) -> None:

@@ -185,6 +185,7 @@ class Matrix:
     scenarios: dict[str, Any] = field(default_factory=dict)  # a selectable scenario's name -> its section
     requirements: Declared = field(default_factory=Declared)  # the top level's and each model's own
     lines: dict[tuple, int] = field(default_factory=dict, compare=False, repr=False)
+    warnings: tuple[str, ...] = field(default=(), compare=False)  # located: retired keys it still uses
 
     def model(self, name: str) -> ModelSpec:
         return next(m for m in self.models if m.name == name)

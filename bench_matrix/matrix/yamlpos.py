@@ -22,18 +22,28 @@ COLLECTION_STARTS = (yaml.MappingStartEvent, yaml.SequenceStartEvent)
 COLLECTION_ENDS = (yaml.MappingEndEvent, yaml.SequenceEndEvent)
 
 
-def load_with_lines(path: Path) -> tuple[Any, dict[Path_, int]]:
-    """Parse `path` with the safe loader; return the data and a map from key path to 1-based line."""
+class Lines(dict):
+    """Key path -> 1-based line; `aliases`: each alias's key path -> its line (the paths under an alias have
+    the lines of the value it names)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.aliases: dict[Path_, int] = {}
+
+
+def load_with_lines(path: Path) -> tuple[Any, Lines]:
+    """Parse `path` with the safe loader; return the data and the line of every key path."""
     text = _read_text(path)
     try:
         _check_depth(text, path)  # the event parser is iterative; the composer below recurses per level
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
+        composer = _Composer(text)
+        node = composer.get_single_node()
     except yaml.YAMLError as exc:
         raise MatrixError([_syntax_problem(path, text, exc)]) from None
     if node is None:
         raise MatrixError([f"{path}: the file is empty; a matrix needs at least 'models', 'dataset' and "
                            f"'axes'"])
-    converter = _Converter(path)
+    converter = _Converter(path, composer.aliases)
     data = converter.convert(node, (), 0)
     if converter.problems:
         raise MatrixError(converter.problems)
@@ -86,6 +96,8 @@ def _syntax_problem(path: Path, text: str, exc: yaml.YAMLError) -> str:
     problem = getattr(exc, "problem", None) or str(exc)
     message = f"{where}: not valid YAML: {problem}"
     context, start = getattr(exc, "context", None), getattr(exc, "context_mark", None)
+    if start is not None and mark is not None and ("end of stream" in problem or "<stream end>" in problem):
+        return _unclosed(path, context or "while parsing the construct", start, mark)
     if start is not None:
         message += (f" ({context or 'the construct'} that started at line {start.line + 1}, "
                     f"column {start.column + 1})")
@@ -94,22 +106,50 @@ def _syntax_problem(path: Path, text: str, exc: yaml.YAMLError) -> str:
     return message
 
 
+def _unclosed(path: Path, context: str, start: yaml.Mark, end: yaml.Mark) -> str:
+    """At the line where the construct the file ends in starts: the end of the file is not the mistake."""
+    what = context.removeprefix("while scanning ").removeprefix("while parsing ")
+    return (f"{path}:{start.line + 1}: not valid YAML: {what} that starts here (column {start.column + 1}) "
+            f"is never closed: the file ends first (line {end.line + 1})")
+
+
+class _Composer(yaml.SafeLoader):
+    """The safe loader's node graph, and the line of each alias by its place: (its parent node's id, its index
+    or its key node's id); the graph itself puts the named value there, with the anchor's lines."""
+
+    def __init__(self, text: str):
+        super().__init__(text)
+        self.aliases: dict[tuple[int, int | tuple], int] = {}
+
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node:
+        if self.check_event(yaml.AliasEvent) and index is not None:
+            self.aliases[place(parent, index)] = self.peek_event().start_mark.line + 1
+        return super().compose_node(parent, index)
+
+
+def place(parent: yaml.Node | None, index: int | yaml.Node) -> tuple[int, int | tuple]:
+    return id(parent), index if isinstance(index, int) else ("key", id(index))
+
+
 class _Converter:
     """Node graph to plain data with a line per key path; refuses tags, cycles and runaway alias expansion."""
 
-    def __init__(self, path: Path):
-        self.path, self.lines, self.problems = path, {}, []
+    def __init__(self, path: Path, aliases: dict[tuple[int, int | tuple], int]):
+        self.path, self.lines, self.problems, self.aliases = path, Lines(), [], aliases
         self.values, self.active = 0, set()
         self.scalars = yaml.SafeLoader("")
 
-    def convert(self, node: yaml.Node, at: Path_, depth: int) -> Any:
+    def convert(self, node: yaml.Node, at: Path_, depth: int, alias: int | None = None) -> Any:
+        if alias is not None:  # the value named, where the alias stands
+            self.lines[at] = self.lines.aliases[at] = alias
         self.lines.setdefault(at, node.start_mark.line + 1)
         self.values += 1
-        if self.values > MAX_VALUES or depth > MAX_DEPTH:  # located at the top-level key being expanded
+        if self.values > MAX_VALUES or depth > MAX_DEPTH:  # located at the alias expanded
             what, limit = ((f"{MAX_VALUES} values", MAX_VALUES) if self.values > MAX_VALUES else
                            (f"{MAX_DEPTH} levels", MAX_DEPTH))
-            raise MatrixError([f"{self._where(node, at[:1])}: aliases expand this to more than {what}: "
-                               f"aliases/nesting too deep; limit {limit}"])
+            line = self.lines[self._expanding(at)]
+            raise MatrixError([f"{self.path}:{line}: {format_path(at[:1])}: aliases expand this to more than "
+                               f"{what}: aliases/nesting too deep; limit {limit}"])
         if id(node) in self.active:
             self.problems.append(f"{self._where(node, at)}: a recursive alias (it refers to a mapping or "
                                  f"list that contains it); matrix files cannot contain cycles")
@@ -122,7 +162,8 @@ class _Converter:
         try:
             if isinstance(node, yaml.MappingNode):
                 return self._mapping(node, at, depth)
-            return [self.convert(item, at + (i,), depth + 1) for i, item in enumerate(node.value)]
+            return [self.convert(item, at + (i,), depth + 1, self.aliases.get(place(node, i)))
+                    for i, item in enumerate(node.value)]
         finally:
             self.active.discard(id(node))
 
@@ -140,7 +181,8 @@ class _Converter:
                 self.problems.append(f"{self.path}:{line}: {format_path(at + (key,))}: duplicate key '{key}'")
                 continue
             self.lines[at + (key,)] = line
-            out[key] = self.convert(value_node, at + (key,), depth + 1)
+            alias = self.aliases.get(place(node, key_node))
+            out[key] = self.convert(value_node, at + (key,), depth + 1, alias)
         return out
 
     def _scalar(self, node: yaml.ScalarNode, at: Path_) -> Any:
@@ -168,6 +210,10 @@ class _Converter:
         self.problems.append(f"{self._where(node, at)}: the tag {node.tag} is not allowed; matrix files are "
                              f"plain YAML (mappings, lists, strings, numbers, booleans)")
 
+    def _expanding(self, at: Path_) -> Path_:
+        """The first alias on the key path `at` (whose expansion runs away), else its top-level key."""
+        return min((p for p in self.lines.aliases if at[:len(p)] == p), key=len, default=at[:1])
+
     def _where(self, node: yaml.Node, at: Path_) -> str:
         return f"{self.path}:{self.lines.get(at, node.start_mark.line + 1)}: {format_path(at)}"
 
@@ -187,13 +233,28 @@ def suggest(word: str, allowed: list[str] | tuple[str, ...]) -> str:
 
 
 class Located:
-    """Collects problems as 'file:line: key: message', the line of the nearest key path the file has."""
+    """Collects problems and warnings as 'file:line: key: message', the line of the nearest key path the file
+    has."""
 
     def __init__(self, path: Path, lines: dict[Path_, int]):
-        self.path, self.lines, self.problems = path, lines, []
+        self.path, self.lines, self.problems, self.warnings = path, lines, [], []
+        self.aliases: dict[Path_, int] = getattr(lines, "aliases", {})
 
     def add(self, at: Path_, message: str) -> None:
+        self.problems.append(self.located(at, message))
+
+    def warn(self, at: Path_, message: str) -> None:
+        self.warnings.append(self.located(at, message))
+
+    def located(self, at: Path_, message: str) -> str:
+        """At the line of `at` (or of the nearest key path above it); within an alias's value, at the alias's
+        line, naming the value's own line."""
         probe = at
         while probe not in self.lines and probe:
             probe = probe[:-1]
-        self.problems.append(f"{self.path}:{self.lines.get(probe, 1)}: {format_path(at)}: {message}")
+        line = self.lines.get(probe, 1)
+        alias = max((p for p in self.aliases if probe[:len(p)] == p), key=len, default=probe)
+        if alias == probe:
+            return f"{self.path}:{line}: {format_path(at)}: {message}"
+        return (f"{self.path}:{self.aliases[alias]}: {format_path(at)}: {message} (in the value the alias "
+                f"there names, at line {line})")

@@ -1,4 +1,5 @@
-"""One timing phase per machine: a host-wide `flock` every measuring process holds while it times a cell.
+"""One timing phase per machine: a host-wide `flock` every measuring process holds while it times a cell; and
+one run at a time measuring a model into a store (`store_lock`).
 
 The lock lives in /tmp/bench-matrix (or `$BENCH_MATRIX_LOCK_DIR`), shared by every store, workspace and user
 of the host. The kernel drops a `flock` when its holder's file closes, so a killed run never leaves it held.
@@ -8,6 +9,7 @@ from __future__ import annotations
 
 import fcntl
 import getpass
+import hashlib
 import json
 import os
 import platform
@@ -83,6 +85,24 @@ def waiting_message(directory: Path, waited_s: float = 0.0) -> str:
         text = (f"waiting for the timing phase of pid {found.pid} of user {found.user} "
                 f"({found.holder}, since {since})")
     return text if waited_s < 1 else f"{text}; waited {_duration(waited_s)}"
+
+
+def store_lock(store: Path, model: str, block: bool, on_wait: Callable[[], None]) -> int | None:
+    """Take the host-wide lock a run holds while it measures `model` into `store` (from its rounds until its
+    records are stored); the descriptor whose closing releases it, or None where it is busy and not `block`.
+    `on_wait()` is called before blocking."""
+    name = hashlib.sha256(f"{store.resolve()}\0{model}".encode()).hexdigest()[:20]
+    lock = _open_lock(_shared_dir(lock_dir()) / f"store-{name}.lock")
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return lock
+    except BlockingIOError:
+        if not block:
+            os.close(lock)
+            return None
+    on_wait()
+    fcntl.flock(lock, fcntl.LOCK_EX)
+    return lock
 
 
 def current_holder(directory: Path) -> Holder | None:

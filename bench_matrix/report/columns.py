@@ -237,7 +237,7 @@ PER_OUTPUT = {"regression": (("MSE", "mse", 4), ("max |Δ|", "max_abs_diff_vs_ba
 
 
 def output_columns(model: ModelSummary) -> list[Column]:
-    """A model with several outputs: each output's own figures (the record's `per_output`), output by output."""
+    """A model with several outputs: each output's own figures (the record's `per_output`), in order."""
     count = max((len(_outputs(row)) for row in model.rows), default=0)
     if count < 2:
         return []

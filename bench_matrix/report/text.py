@@ -10,6 +10,7 @@ from bench_matrix.measurement import RoundsFacts
 from bench_matrix.report.columns import DASH, DELTA_NAMES, fixed, percent, sig, times
 from bench_matrix.report.summary import ModelSummary, Report, metric, number, p50
 from bench_matrix.store import CellRecord
+from bench_matrix.tensors import axes_text, shape_text
 
 NO_REASON = "(no reason stored)"
 
@@ -130,7 +131,19 @@ def model_line(model: ModelSummary, code: Callable[[str], str]) -> str:
     elif "training" in info:
         parts.append("not trained by bench-matrix")
     parts.append(f"baseline {code(model.baseline_key)}")
-    return " · ".join(parts)
+    return " · ".join(parts + _timed_inputs(info))
+
+
+def _timed_inputs(info: dict) -> list[str]:
+    """The shapes the model's inputs were timed at, per sample, with the open axes synthetic data gave the
+    default length; none for records prepared before they were stored."""
+    timed, defaulted = info.get("timed_inputs"), info.get("defaulted_axes") or {}
+    if not isinstance(timed, list) or not timed:
+        return []
+    shapes = ", ".join(f"{i['name']} {shape_text(i['shape'])} {i['dtype']}" for i in timed)
+    notes = [f"{name}: {axes_text(axes)} open in the model, given synthetic data's default length"
+             for name, axes in defaulted.items()]
+    return [f"inputs timed at {shapes} per sample" + (f" ({'; '.join(notes)})" if notes else "")]
 
 
 def accuracy_line(model: ModelSummary) -> str:

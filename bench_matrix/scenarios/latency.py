@@ -85,7 +85,8 @@ def run(loaded: Loaded) -> Outcome:
     phase("evaluate")
     accuracy, outputs = _evaluate(job, session)
     converted, manifest = job.converted, job.converted.manifest
-    metrics = {**artifact_size(converted.model, converted.directory / "size.json"),
+    kept = converted.directory / "size.json"
+    metrics = {**artifact_size(converted.model, kept, job.workspace.partial(kept)),
                "params": manifest["params"], **accuracy, "outputs_sha256": outputs_digest(outputs),
                "cpu_affinity": loaded.cpus, **_gpu_metrics(loaded.gpu_memory),
                "batch_size": settings.batch_size,

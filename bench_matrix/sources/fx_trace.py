@@ -4,7 +4,8 @@ transformers model it cannot trace, by transformers' own tracer); a failure is o
 from __future__ import annotations
 
 import inspect
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
 from bench_matrix.sources.torch_files import brief
@@ -20,7 +21,8 @@ def fx_prepare(prepare: Callable[..., Any], module: "torch.nn.Module", mapping: 
     """`prepare(module, mapping, example_inputs=example)` (torch.ao's prepare_fx or prepare_qat_fx);
     ValueError, one line naming the tracer and its message, when no tracer can trace the module."""
     try:
-        prepared = prepare(module, mapping, example_inputs=example)
+        with _buffers_traced():
+            prepared = prepare(module, mapping, example_inputs=example)
     except Exception as exc:  # symbolic tracing fails on data-dependent Python control flow
         failed = f"torch.ao.quantization {prepare.__name__}: torch.fx cannot trace {label}: {brief(exc)}"
         if type(module).__module__.partition(".")[0] != "transformers":
@@ -45,9 +47,49 @@ def _by_transformers(prepare: Callable[..., Any], module: "torch.nn.Module", map
     except Exception as exc:  # a model class transformers' tracer does not support
         raise ValueError(f"{failed}; {HF_TRACER} cannot trace it either: {brief(exc)}") from exc
     try:
-        return prepare(traced, mapping, example_inputs=example)
+        with _buffers_traced():  # the graph reads its buffers as transformers' tracer did: as graph values
+            return prepare(_dtypes_fixed(traced, example), mapping, example_inputs=example)
     except Exception as exc:  # the traced graph holds what the quantiser cannot handle
         raise ValueError(f"{failed}; as traced by {HF_TRACER} instead: {brief(exc)}") from exc
+
+
+def _dtypes_fixed(traced: "torch.fx.GraphModule",
+                  example: tuple["torch.Tensor", ...]) -> "torch.fx.GraphModule":
+    """`traced` with each `.dtype` it reads (BERT's torch.finfo(hidden.dtype)) replaced by the dtype one run
+    finds: torch.finfo refuses a traced dtype when torch.ao traces the graph again."""
+    import torch
+
+    reads = [n for n in traced.graph.nodes if n.op == "call_function" and n.target is getattr
+             and n.args[1:] == ("dtype",)]
+    found: dict[Any, Any] = {}
+
+    class Dtypes(torch.fx.Interpreter):
+        def run_node(self, n: torch.fx.Node) -> Any:
+            found[n] = value = super().run_node(n)
+            return value
+
+    with torch.no_grad():
+        Dtypes(traced).run(*example)
+    for node in reads:
+        for user in list(node.users):
+            user.args, user.kwargs = torch.fx.node.map_aggregate(
+                (user.args, user.kwargs), lambda a, n=node: found[n] if a is n else a)
+        traced.graph.erase_node(node)
+    traced.recompile()
+    return traced
+
+
+@contextmanager
+def _buffers_traced() -> Iterator[None]:
+    """torch.ao's tracer proxies buffers as it does parameters: a buffer sliced by a traced size (BERT's
+    position_ids[:, :seq_len]) is traced, not sliced in Python ('slice indices must be integers')."""
+    from torch.ao.quantization.fx.tracer import QuantizationTracer
+
+    QuantizationTracer.proxy_buffer_attributes = True
+    try:
+        yield
+    finally:
+        del QuantizationTracer.proxy_buffer_attributes  # back to torch.fx's default, the base class's
 
 
 def _floats_observed(prepared: "torch.fx.GraphModule",

@@ -49,10 +49,7 @@ def train_torch(factory: str, inputs: Inputs, y: np.ndarray, spec: TrainingSpec,
         losses.append(total / len(yt))
         epochs.ended(len(losses), losses[-1])
     train_s = time.perf_counter() - begin
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp")
-    torch.save(model.eval().state_dict(), tmp)
-    tmp.replace(out)
+    torch.save(model.eval().state_dict(), out)
     return {"epochs": spec.epochs, "batch_size": spec.batch_size, "lr": spec.lr, "train_s": round(train_s, 2),
             "final_train_loss": losses[-1], "train_samples": count(inputs), "threads": threads}
 
@@ -77,12 +74,9 @@ def train_keras(builtin: str, inputs: Inputs, y: np.ndarray, spec: TrainingSpec,
     history = model.fit(x[0] if len(x) == 1 else x, _labels(y, task), batch_size=spec.batch_size,
                         epochs=spec.epochs, shuffle=True, verbose=0, callbacks=[epoch_phases(spec.epochs)])
     train_s = time.perf_counter() - begin
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f"tmp-{out.name}")  # Keras picks the format from the file ending
     inference = BUILDERS[builtin]()  # uncompiled: the .keras file holds the model, not Adam's two moments
     inference.set_weights(model.get_weights())
-    inference.save(tmp)
-    tmp.replace(out)
+    inference.save(out)  # Keras picks the format from the file ending
     return {"epochs": spec.epochs, "batch_size": spec.batch_size, "lr": spec.lr, "train_s": round(train_s, 2),
             "final_train_loss": float(history.history["loss"][-1]), "train_samples": count(inputs),
             "threads": threads}
