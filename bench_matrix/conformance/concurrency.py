@@ -10,6 +10,10 @@ from pathlib import Path
 
 TASKS = Path("/proc/self/task")
 SAMPLE_S, SAMPLING_S = 0.001, 0.2  # how often the threads are looked at, and for how long
+# Before sampling, until this many looks in a row find no other thread running (at most SETTLE_S): threads of
+# sessions run before (ONNX Runtime's pool spins for a while after its work, longer on a busy machine)
+# must not count against this one.
+QUIET_LOOKS, SETTLE_S = 20, 2.0
 
 
 def _running(own: str) -> int:
@@ -26,11 +30,20 @@ def _running(own: str) -> int:
     return found
 
 
+def settle() -> None:
+    """Wait until no other thread of this process runs for QUIET_LOOKS looks in a row, or SETTLE_S passed."""
+    own, quiet, end = str(threading.get_native_id()), 0, time.perf_counter() + SETTLE_S
+    while quiet < QUIET_LOOKS and time.perf_counter() < end:
+        quiet = quiet + 1 if _running(own) == 0 else 0
+        time.sleep(SAMPLE_S)
+
+
 def oversubscribed(run: Callable[[], object], threads: int) -> float | None:
     """The share of samples in which more than `threads` threads ran while `run` was called again and again
     (SAMPLING_S), or None where the system does not tell."""
     if not TASKS.is_dir():
         return None
+    settle()
     counts: list[int] = []
     stop = threading.Event()
 

@@ -62,11 +62,14 @@ class Loaded:
 
 
 class Kit:
-    """Makes each thing once per test class, under `root`; `options` are backend options by backend name."""
+    """Makes each thing once per test class, under `root`; `options` are backend options by backend name;
+    threads are counted while the cases of model `sampled` run (None: every model's)."""
 
-    def __init__(self, root: Path, options: dict[str, dict[str, Any]] | None = None):
+    def __init__(self, root: Path, options: dict[str, dict[str, Any]] | None = None,
+                 sampled: str | None = None):
         self.root = root
         self.options = options or {}
+        self.sampled = sampled
         self._outcomes: dict[Any, tuple[bool, Any]] = {}
         self._fresh: dict[str, dict[str, Any]] = {}
         self._previous: dict[int, tuple[Session, Previous]] = {}  # by id: each session's call before
@@ -186,6 +189,11 @@ class Kit:
 
         return self._once(("loaded", case), make)
 
+    def reloaded(self, case: Case) -> Session:
+        """A second session of the case's first artifact, loaded once for the tests that compare two loads or
+        need a session no other test ran first."""
+        return self._once(("reloaded", case), lambda: self.load(case))
+
     def fresh_info(self, case: Case) -> dict[str, Any]:
         """The case's first artifact loaded in a fresh process: its info() and, on the CPU, the share of
         samples in which more threads ran than asked while it executed the large batch ({"error": ...} if
@@ -206,8 +214,9 @@ class Kit:
 
     def oversubscribed(self, case: Case) -> float | None:
         """In this process: the share of samples in which more threads ran than asked while the case's
-        session executed the large batch; None off the CPU or where the system does not tell."""
-        if self.backend(case.backend).device(case.target) != "cpu":
+        session executed the large batch; None off the CPU, for a model not sampled, or where the system does
+        not tell."""
+        if not self._sampled(case):
             return None
         session, large = self.loaded(case).session, self.model(case.framework, case.model).large
         self.ran(session, count(large))
@@ -218,9 +227,14 @@ class Kit:
             raise RuleBroken("session-runs", f"prepare/execute/fetch raised {type(exc).__name__}: {exc}") \
                 from exc
 
+    def _sampled(self, case: Case) -> bool:
+        """Whether the case's threads are counted: on the CPU, for the model sampled (where a runtime runs
+        its threads does not depend on the model)."""
+        return self.sampled in (None, case.model) and self.backend(case.backend).device(case.target) == "cpu"
+
     def _inputs_file(self, case: Case, scratch: Path) -> str | None:
-        """The case's model's large batch saved in `scratch` for a fresh process; None off the CPU."""
-        if self.backend(case.backend).device(case.target) != "cpu":
+        """The case's model's large batch saved in `scratch` for a fresh process; None if not sampled."""
+        if not self._sampled(case):
             return None
         path = scratch / f"{case.framework}-{case.model}.npz"
         if not path.exists():

@@ -29,9 +29,13 @@ HIDDEN = 16  # the width of the image models' last hidden layer
 # leaves tensors under 1024 elements in float, quantises it
 WIDE = 128
 # Samples compared with the reference; calibrated on; the largest batch (request.max_batch), run at once by
-# the execute check and, one size after another from 1, by the batch check (the calibration samples over
-# again: int8 results differ by rounding, not by clipping, at every batch size).
+# the execute check and the batch check (the calibration samples over again: int8 results differ by
+# rounding, not by clipping, at every batch size).
 EVAL, CALIBRATION, LARGE = 16, 40, 64
+# The batch check's sizes, one after another in one session: every size class that has broken a runtime: 1
+# and 2 (the smallest, and an example batch of 2), odd ones, 15 to 17 around a plan made for 15 samples from
+# an example batch of 2 (ExecuTorch's) and a tile of 8 or 16, and max_batch - 1 and max_batch.
+BATCHES = (1, 2, 3, 7, 15, 16, 17, LARGE - 1, LARGE)
 # What every conversion and load is asked for (settings.threads' default); TensorFlow, whose threads are set
 # once per process, runs the kit's own Keras code with it too, as a cell's process would.
 THREADS = 1

@@ -14,7 +14,7 @@ from bench_matrix.conformance.checks import bounds, check_close, check_kept, che
     pending_work, reported_threads
 from bench_matrix.conformance.here import NotRun, describe
 from bench_matrix.conformance.kit import Kit
-from bench_matrix.conformance.models import EVAL, LARGE, MODELS, THREADS
+from bench_matrix.conformance.models import BATCHES, LARGE, MODELS, THREADS
 from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.tensors import take
 
@@ -149,26 +149,28 @@ class BackendConformance:
         check_close(outputs, first, allowed, "runs-any-batch", "the fp32 reference of the same sample")
 
     def test_runs_every_batch_size(self, case: Case, conformance_kit: Kit) -> None:
-        """Every batch from 1 to max_batch, one after another in one session (the first model only)."""
+        """Each size class of batch from 1 to max_batch (BATCHES), one after another in one session (the
+        first model only)."""
         model = conformance_kit.model(case.framework, case.model)
         allowed = bounds(self._tolerance(case.precision), model.large_reference)
         session = conformance_kit.loaded(case).session
-        for n in range(1, LARGE + 1):
+        for n in BATCHES:
             wanted = [out[:n] for out in model.large_reference]
             outputs = conformance_kit.run(session, take(model.large, slice(0, n)), wanted, allowed)
             check_close(outputs, wanted, allowed, "runs-any-batch",
                         f"the fp32 reference at batch {n} (max_batch {LARGE})")
 
     def test_each_call_gives_its_own_outputs(self, case: Case, conformance_kit: Kit) -> None:
-        """Two calls of a new session on two halves of the samples: the second call gives the second half's
-        outputs, not the first's, and the first call's arrays stay as they were."""
-        model, half = conformance_kit.model(case.framework, case.model), EVAL // 2
-        session = conformance_kit.load(case)
-        allowed = bounds(self._tolerance(case.precision), model.reference)
-        halves = [[out[:half] for out in model.reference], [out[half:] for out in model.reference]]
-        first = conformance_kit.run(session, take(model.eval, slice(0, half)), halves[0], allowed)
+        """Two calls of a second session: the large batch, then its samples in reverse order (another sample
+        at every place, in a batch of the same size, so a reused buffer is the same one); the second call
+        gives its own outputs, not the first's, and the first call's arrays stay as they were."""
+        model, backwards = conformance_kit.model(case.framework, case.model), slice(None, None, -1)
+        session = conformance_kit.reloaded(case)
+        allowed = bounds(self._tolerance(case.precision), model.large_reference)
+        first = conformance_kit.run(session, model.large, model.large_reference, allowed)
         kept = [out.copy() for out in first]
-        conformance_kit.run(session, take(model.eval, slice(half, EVAL)), halves[1], allowed)
+        conformance_kit.run(session, take(model.large, backwards), [out[backwards] for out in
+                                                                     model.large_reference], allowed)
         check_kept(first, kept)
 
     def test_execute_returns_when_done(self, case: Case, conformance_kit: Kit) -> None:
@@ -209,7 +211,7 @@ class BackendConformance:
                                                  f"runtime does not keep to `threads`")
 
     def test_load_is_repeatable(self, case: Case, conformance_kit: Kit) -> None:
-        self._same_as_first(case, conformance_kit, conformance_kit.load(case), "load-is-repeatable",
+        self._same_as_first(case, conformance_kit, conformance_kit.reloaded(case), "load-is-repeatable",
                             "the first load's outputs")
 
     def test_convert_is_repeatable(self, case: Case, conformance_kit: Kit) -> None:
@@ -223,8 +225,10 @@ class BackendConformance:
             raise RuleBroken("convert-writes-only-out_dir", f"convert() wrote {shown} outside out_dir")
 
     def _same_as_first(self, case: Case, kit: Kit, session: Session, rule: str, what: str) -> None:
+        """`session`'s outputs on the large batch (max_batch: a compiler has compiled for it) are the first
+        load's."""
         model = kit.model(case.framework, case.model)
-        allowed = bounds(self._tolerance(case.precision), model.reference)
-        first = kit.run(kit.loaded(case).session, model.eval, model.reference, allowed)
-        again = kit.run(session, model.eval, model.reference, allowed)
-        check_close(again, first, bounds(REPEAT, model.reference), rule, what)
+        allowed = bounds(self._tolerance(case.precision), model.large_reference)
+        first = kit.run(kit.loaded(case).session, model.large, model.large_reference, allowed)
+        again = kit.run(session, model.large, model.large_reference, allowed)
+        check_close(again, first, bounds(REPEAT, model.large_reference), rule, what)
