@@ -39,6 +39,7 @@ def test_each_kind_of_impossible_record_is_found_and_the_plausible_ones_are_not(
     fake = record("tflite", "int8", size_bytes=PARAMS, outputs_sha256="fp32")
     views = record("openvino", "fp32", snr_db=25.0)
     fine = [record("tflite", "fp16", size_bytes=PARAMS * 2, snr_db=65.0),
+            record("onnxruntime", "fp16", size_bytes=PARAMS * 2, outputs_sha256="fp32"),  # a Suspect note
             record("tflite", "int8", "ptq_static", size_bytes=PARAMS, snr_db=30.0),
             record("pytorch", "fp32", "prune", snr_db=25.0),  # fine-tuned: not the baseline's weights
             record("onnxruntime", "int8", "ptq_dynamic", size_bytes=PARAMS // 2 + 1, snr_db=30.0)]

@@ -1,6 +1,6 @@
 """Ok records that cannot be right, from their stored figures alone (docs/results.md §8): an artifact smaller
-than its parameters fit in at its precision, a lower precision whose outputs are bit-identical to an fp32
-cell's, an fp32 cell farther from the baseline than float noise goes."""
+than its parameters fit in at its precision, an int8 cell whose outputs are bit-identical to an fp32 cell's,
+an fp32 cell farther from the baseline than float noise goes."""
 
 from __future__ import annotations
 
@@ -42,8 +42,10 @@ def _size(record: CellRecord) -> str | None:
 
 
 def _identical(record: CellRecord, fp32: dict[str | None, CellRecord]) -> str | None:
+    """int8 rounds every quantised tensor to 256 levels: outputs bit-identical to an fp32 cell's are an fp32
+    program (fp16 and bf16 can leave a tiny model's bits alone: summary.suspects notes those)."""
     digest = record.metrics.task.outputs_sha256
-    same = fp32.get(digest) if isinstance(digest, str) and record.cell.precision != "fp32" else None
+    same = fp32.get(digest) if isinstance(digest, str) and record.cell.precision == "int8" else None
     if same is None:
         return None
     return (f"its outputs are bit-identical to {same.cell.label}'s: {record.cell.precision} was not applied")
