@@ -15,8 +15,8 @@ SIZE_SHARE = 0.5
 # An fp32 cell converted as it is (strategy none) computes what the baseline does up to summation order: on
 # the conformance kit's models the CPU backends' fp32 outputs are 127-137 dB from the framework's (or
 # identical), fp16 65-68 dB, bf16 48-50, int8 30-36. A GPU's fp32 may multiply in TF32 (cuDNN's default for
-# PyTorch's convolutions, TensorRT's), with fp16's 10-bit mantissa, so it can come near fp16: below this, the
-# fp32 outputs are not the model's (an error RMS over 0.1 % of the outputs' RMS).
+# PyTorch's convolutions), with fp16's 10-bit mantissa, so it can come near fp16: below this, the fp32
+# outputs are not the model's (an error RMS over 0.1 % of the outputs' RMS).
 FP32_SNR_DB = 60.0
 
 
