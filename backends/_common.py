@@ -1,10 +1,6 @@
-"""What the built-in backends share: the ptq_static option check, calibration data in batches, and a model's
-outputs as one flat list."""
+"""What the built-in backends share: the ptq_static option check and calibration data in batches."""
 
 from __future__ import annotations
-
-from collections.abc import Mapping
-from typing import Any
 
 import numpy as np
 
@@ -39,15 +35,3 @@ def calibration_data(request: ConvertRequest, step: StrategySpec) -> Inputs:
 def batches(data: Inputs, size: int = CALIBRATION_BATCH) -> list[Inputs]:
     """The samples of every input in consecutive batches of `size` (the last one may be smaller)."""
     return [take(data, slice(i, i + size)) for i in range(0, count(data), size)]
-
-
-def flat_outputs(outputs: Any) -> list[Any]:
-    """A model's outputs as a flat list: a tensor alone; a tuple or list in order; a dict (a Keras model built
-    with named outputs, a Hugging Face ModelOutput) by sorted key; nested structures depth first; None dropped."""
-    if outputs is None:
-        return []
-    if isinstance(outputs, Mapping):
-        return [leaf for key in sorted(outputs) for leaf in flat_outputs(outputs[key])]
-    if isinstance(outputs, (list, tuple)):
-        return [leaf for item in outputs for leaf in flat_outputs(item)]
-    return [outputs]

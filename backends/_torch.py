@@ -9,9 +9,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from bench_matrix.plugin import Backend, Inputs, Session, TensorSpec, cuda_mismatch_reason, example_inputs, \
-    installed_versions, no_gpu_reason, precision_reason, quiet_torch, use_engine
+    flat_outputs, installed_versions, no_gpu_reason, precision_reason, quiet_torch, use_engine
 
-from ._common import flat_outputs
 
 __all__ = ["quiet_torch", "use_engine"]  # re-exported for the torch backends
 

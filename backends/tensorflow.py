@@ -10,9 +10,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from bench_matrix.plugin import Backend, ConvertRequest, Inputs, Session, SourceModel, Support, TensorSpec, \
-    example_inputs, tensorflow, thread_settings
+    example_inputs, flat_outputs, tensorflow, thread_settings
 
-from ._common import flat_outputs
 from ._tf import keras_arguments, missing_tensorflow, probe_tensorflow_gpu, tf_versions
 
 if TYPE_CHECKING:

@@ -12,9 +12,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from bench_matrix.plugin import Backend, ConvertRequest, Inputs, Session, StrategySpec, Support, TensorSpec, \
-    concrete, count, take, tensorflow, thread_settings
+    concrete, count, flat_outputs, take, tensorflow, thread_settings
 
-from ._common import calibration_data, flat_outputs, static_options_reason
+from ._common import calibration_data, static_options_reason
 from ._tf import keras_arguments, probe_tftrt, tf_versions
 
 if TYPE_CHECKING:

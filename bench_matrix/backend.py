@@ -103,6 +103,9 @@ class Backend(ABC):
     # why a first result takes minutes (it compiles): the automatic matrix of a model file leaves it out
     slow_start: ClassVar[str] = ""
     devices: ClassVar[dict[str, str]] = {}  # target -> the device it runs on (one of DEVICES); unnamed: cpu
+    # the name of a backend another distribution registers (a built-in one) that this one replaces; without
+    # it, two registrations of one name are an error naming both
+    replaces: ClassVar[str] = ""
 
     def device(self, target: str) -> str:
         """The device `target` runs on, as `devices` declares it (cpu when it does not name the target)."""

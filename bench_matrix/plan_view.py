@@ -170,6 +170,9 @@ def show_backends(console: Console, ws: Workspace) -> None:
     for name, entry in entries.items():
         info = described[name]
         console.print(f"[bold]{name}[/]  [dim]{escape(entry.distribution)} · {escape(entry.value)}[/]")
+        if entry.replaced:
+            console.print(f"  replaces the {name} of {escape(', '.join(entry.replaced))} (its class declares "
+                          f"replaces = {name!r})")
         if info.get("error"):
             console.print(f"  [red]cannot be loaded:[/] {escape(info['error'])}\n")
             continue

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
@@ -18,11 +18,15 @@ class BackendLoadError(Exception):
 
 @dataclass(frozen=True)
 class BackendEntry:
-    """A registered backend before it is imported: its name, target and distribution ("NAME VERSION")."""
+    """A registered backend before it is imported: its name, target and distribution ("NAME VERSION");
+    `replaced`: the other registrations of its name, which its class declares it replaces; `clash`: why the
+    name cannot be used (several distributions register it and none declares it replaces the others)."""
 
     name: str
     value: str
     distribution: str
+    replaced: tuple[str, ...] = ()
+    clash: str = ""
 
     @property
     def builtin(self) -> bool:
@@ -31,11 +35,38 @@ class BackendEntry:
 
 
 def available() -> dict[str, BackendEntry]:
-    """Every registered backend by name (first registration of a name wins, sorted by name)."""
-    found: dict[str, BackendEntry] = {}
+    """Every registered backend by name, sorted: a name several distributions register is the one whose class
+    declares it `replaces` the others, else a clash that cannot be loaded (never a silent pick)."""
+    found: dict[str, dict[tuple[str, str], EntryPoint]] = {}
     for ep in sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
-        found.setdefault(ep.name, BackendEntry(ep.name, ep.value, _distribution(ep)))
-    return found
+        found.setdefault(ep.name, {}).setdefault((ep.value, _distribution(ep)), ep)
+    return {name: _in_effect(name, registered) for name, registered in found.items()}
+
+
+def _in_effect(name: str, registered: dict[tuple[str, str], EntryPoint]) -> BackendEntry:
+    """The registration of `name` in effect among several (value, distribution): the one declaring it
+    replaces the others, else the built-in one (or the first), marked with the clash."""
+    entries = sorted((BackendEntry(name, value, distribution) for value, distribution in registered),
+                     key=lambda e: (not e.builtin, e.distribution, e.value))  # the built-in one first
+    if len(entries) == 1:
+        return entries[0]
+    replacing = [e for e in entries if _replaces(registered[(e.value, e.distribution)]) == name]
+    if len(replacing) == 1:
+        return replace(replacing[0], replaced=tuple(e.distribution for e in entries if e is not replacing[0]))
+    both = " and ".join(f"{e.distribution} ({e.value})" for e in entries)
+    return replace(entries[0], clash=f"backend {name!r} is registered by {both}, and "
+                                     f"{'more than one' if replacing else 'none'} of their classes declares "
+                                     f"replaces = {name!r}: uninstall one, or declare in the class that "
+                                     f"replaces the other `replaces = {name!r}`")
+
+
+def _replaces(ep: EntryPoint) -> str:
+    """The name the registered class declares it replaces ("" when none, or when it cannot be imported)."""
+    try:
+        declared = getattr(ep.load(), "replaces", "")
+    except Exception:  # a broken plugin must not take the tool down; it declares nothing
+        return ""
+    return declared if isinstance(declared, str) else ""
 
 
 @dataclass(frozen=True)
@@ -93,10 +124,12 @@ def _options_problem(options: Any) -> str | None:
 
 def backend_class(name: str) -> type[Backend]:
     """Import one registered backend's class."""
-    eps = [ep for ep in entry_points(group=ENTRY_POINT_GROUP) if ep.name == name]
-    if not eps:
-        raise BackendLoadError(f"no backend named {name!r} is installed (installed: {', '.join(available())})")
-    ep = eps[0]
+    entries = available()
+    if name not in entries:
+        raise BackendLoadError(f"no backend named {name!r} is installed (installed: {', '.join(entries)})")
+    if entries[name].clash:
+        raise BackendLoadError(entries[name].clash)
+    ep = EntryPoint(name, entries[name].value, ENTRY_POINT_GROUP)
     try:
         cls = ep.load()
     except Exception as exc:  # a broken plugin must not take the tool down

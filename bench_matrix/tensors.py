@@ -1,4 +1,5 @@
-"""Named model inputs: their declared shape and dtype, a batch of them, and binding data arrays to them."""
+"""Named model inputs: their declared shape and dtype, a batch of them, and binding data arrays to them; a
+model's outputs as one flat list."""
 
 from __future__ import annotations
 
@@ -175,3 +176,15 @@ def data_names(data: Mapping[str, Any], model: Sequence[TensorSpec]) -> list[str
     if len(model) == 1 and model[0].name not in data and len(data) == 1:
         return [next(iter(data))]
     return [spec.name for spec in model]
+
+
+def flat_outputs(outputs: Any) -> list[Any]:
+    """A model's outputs as a flat list: a tensor alone; a tuple or list in order; a dict (a Keras model with
+    named outputs, a Hugging Face ModelOutput) by sorted key; nested structures depth first; None dropped."""
+    if outputs is None:
+        return []
+    if isinstance(outputs, Mapping):
+        return [leaf for key in sorted(outputs) for leaf in flat_outputs(outputs[key])]
+    if isinstance(outputs, (list, tuple)):
+        return [leaf for item in outputs for leaf in flat_outputs(item)]
+    return [outputs]

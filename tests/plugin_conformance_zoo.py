@@ -242,11 +242,12 @@ ZOO = {cls.name: f"plugin_conformance_zoo:{cls.__name__}" for cls in (
 ZOO["unloadable"] = "plugin_conformance_zoo_missing:Backend"
 
 
-def install(site: Path) -> None:
-    """The zoo installed into `site` as pip would (a .dist-info with its entry points)."""
+def install(site: Path, more: dict[str, str]) -> None:
+    """The zoo, and the backends `more` registers (name -> entry point), installed into `site` as pip would (a
+    .dist-info with their entry points)."""
     dist = site / "bm_conformance_zoo-0.1.dist-info"
     dist.mkdir(parents=True)
     (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: bm-conformance-zoo\nVersion: 0.1\n")
-    entries = "".join(f"{name} = {value}\n" for name, value in ZOO.items())
+    entries = "".join(f"{name} = {value}\n" for name, value in {**ZOO, **more}.items())
     (dist / "entry_points.txt").write_text(f"[bench_matrix.backends]\n{entries}")
 

@@ -11,13 +11,15 @@ from pathlib import Path
 import pytest
 
 from bench_matrix.conformance import BackendConformance
-from bench_matrix.conformance.cases import cases_of
+from bench_matrix.conformance.cases import Case, cases_of
 from bench_matrix.conformance.here import Here
+from bench_matrix.conformance.kit import Kit
 from bench_matrix.registry import available
 
 TESTS = Path(__file__).resolve().parent
 sys.path.insert(0, str(TESTS))
 
+import plugin_conformance_mutants  # noqa: E402
 import plugin_conformance_zoo  # noqa: E402
 
 pytest_plugins = ["bench_matrix.conformance.plugin"]  # a conftest.py would name the package
@@ -39,6 +41,12 @@ class TestCompilers(BackendConformance):
     backends = tuple(name for name in BUILT_IN if name in COMPILERS)
     models = ("multi_io",)
 
+    def test_runs_every_batch_size(self, case: Case, conformance_kit: Kit) -> None:
+        """aot_inductor's package takes every batch to max_batch; torch_compile compiles again for each."""
+        if case.backend == "torch_compile":
+            pytest.skip("torch.compile compiles again for each new batch size (seconds each on 2 cores)")
+        super().test_runs_every_batch_size(case, conformance_kit)
+
 
 # What each zoo backend must fail with: the rules named by its failed tests (and nothing else).
 BROKEN = {"good_ort": set(), "no_device": set(), "litters": {"convert-writes-only-out_dir"},
@@ -50,14 +58,15 @@ BROKEN = {"good_ort": set(), "no_device": set(), "litters": {"convert-writes-onl
                           "versions-names-libraries", "invalid-reason-agrees-with-supports",
                           "declares-devices"},
           "refuses": {"convert-succeeds"}, "keeps_out_dir": {"load-succeeds"},
-          "path_in_meta": {"meta-is-json"}, "unloadable": {"backend-loads"}}
+          "path_in_meta": {"meta-is-json"}, "unloadable": {"backend-loads"},
+          **plugin_conformance_mutants.RULES}
 
 
 @pytest.fixture(scope="module")
 def zoo_project(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The zoo installed, and a test module checking it, enabled as a plugin package's tests would."""
     root = tmp_path_factory.mktemp("zoo")
-    plugin_conformance_zoo.install(root / "site")
+    plugin_conformance_zoo.install(root / "site", plugin_conformance_mutants.MUTANTS)
     (root / "conftest.py").write_text('pytest_plugins = ["bench_matrix.conformance"]\n')
     (root / "test_zoo.py").write_text("from bench_matrix.conformance import BackendConformance\n\n\n"
                                       "class TestZoo(BackendConformance):\n"

@@ -66,3 +66,23 @@ def test_the_core_names_no_runtime_target() -> None:
               if path != LIBRARY_NAMES
               for n, line in enumerate(path.read_text().splitlines(), 1) if "tensorrt" in line.lower()]
     assert not naming
+
+
+def test_plugins_flatten_outputs_and_bind_inputs_as_the_built_in_backends_do() -> None:
+    """docs/plugins.md's rules for outputs (flattened, dicts by sorted key) and for a PyTorch module's inputs
+    (positionally, or by name where forward names them in another order) are functions of the plugin API."""
+    import torch
+
+    from bench_matrix_backends import _torch, tensorflow
+
+    assert _torch.flat_outputs is plugin.flat_outputs is tensorflow.flat_outputs
+    speed, angle, extra = (torch.full((2, 1), float(v)) for v in (1, 2, 3))
+    assert plugin.flat_outputs({"speed": speed, "angle": (angle, None), "b": [extra]}) == [angle, extra, speed]
+
+    class Named(torch.nn.Module):
+        def forward(self, ids: torch.Tensor, features: torch.Tensor, scale: float = 2.0) -> torch.Tensor:
+            return features * scale - ids
+
+    features, ids = torch.ones(2, 3), torch.arange(6.0).reshape(2, 3)
+    bound = plugin.for_inputs(Named(), ["features", "ids"])
+    assert torch.equal(bound(features, ids), Named()(ids=ids, features=features))

@@ -3,6 +3,8 @@ baseline for each task, uncertain on straddling intervals, ties, and where requi
 
 from __future__ import annotations
 
+import io
+import json
 from pathlib import Path
 from typing import Any
 
@@ -236,3 +238,28 @@ def _allowed(close: str) -> str:
             "p50_ms, p99_ms, peak_rss_mib, size_mib, snr_db, stream, throughput_sps, top1, top1_agreement, "
             "top5")
     return f"{keys}; did you mean '{close}'?"
+
+
+def test_the_verdict_counts_the_cells_that_failed_to_run_in_every_format(tmp_path: Path) -> None:
+    """'Passing 2 of 4, 2 failed': failed cells are counted beside the judged ones, in every format."""
+    from rich.console import Console
+
+    from bench_matrix.report import html, markdown
+    from bench_matrix.report.export import report_json
+    from bench_matrix.report.judging import Judging, judged
+    from bench_matrix.report.summary import summarize
+    from bench_matrix.report.terminal import print_verdict
+
+    ok = [record("onnxruntime", **timed(1.0), size_bytes=MIB), record("openvino", **timed(2.0), size_bytes=MIB)]
+    failed = [CellRecord(cell=Cell("m", "pytorch", backend, "none", "fp32", "cpu"), status="failed",
+                         env={"host": "h"}) for backend in ("tflite", "torchscript")]
+    report = judged(summarize([*ok, *failed], {}, {}), {}, Judging(overrides={"p50_ms": 10}))
+    (found,) = report.models[0].recommendations
+    assert (found.passing, found.judged, found.failed) == (2, 2, 2)
+    said = "2 of 4, 2 failed"
+    console = Console(record=True, width=250, file=io.StringIO())
+    print_verdict(report.models, console)
+    assert said in console.export_text()
+    assert f"| {said} |" in "\n".join(markdown.verdict(report.models))
+    assert f">{said}</td>" in "".join(html._verdict(report))
+    assert json.loads(report_json([*ok, *failed], report))["recommendations"][0]["failed"] == 2

@@ -18,9 +18,10 @@ THREAD_KEYS = ("threads", "intra_op_threads")  # how info() names the intra-op t
 PENDING_SHARE, PENDING_FLOOR_S, PENDING_REPEATS = 0.5, 0.002, 3
 
 
-def check_fetched(outputs: Any, reference: list[np.ndarray]) -> list[np.ndarray]:
+def check_fetched(outputs: Any, reference: list[np.ndarray], previous: int | None = None) -> list[np.ndarray]:
     """`outputs` (what predict returned) as fetch must give them: a list with every output, each a finite
-    float32 array of the reference's shape, batch axis first."""
+    float32 array of the reference's shape, batch axis first; `previous`: the batch of the session's call
+    before, whose outputs these must not be."""
     if not isinstance(outputs, list) or len(outputs) != len(reference):
         count = len(outputs) if isinstance(outputs, (list, tuple)) else "not a list"
         raise RuleBroken("fetch-returns-every-output",
@@ -30,7 +31,13 @@ def check_fetched(outputs: Any, reference: list[np.ndarray]) -> list[np.ndarray]
         if not isinstance(got, np.ndarray) or got.dtype != np.float32:
             kind = got.dtype if isinstance(got, np.ndarray) else type(got).__name__
             raise RuleBroken("fetch-returns-float32", f"output {index} is {kind}, not a float32 numpy array")
+        if got.shape != wanted.shape and previous not in (None, len(wanted)) and got.shape[:1] == (previous,):
+            raise RuleBroken("outputs-of-this-call", f"output {index} has the previous call's batch of "
+                                                     f"{previous}, not this call's {len(wanted)}")
         if got.shape != wanted.shape:
+            if sorted(o.shape for o in outputs) == sorted(r.shape for r in reference):
+                raise RuleBroken("outputs-in-order", f"output {index} has shape {got.shape}, the model's "
+                                                     f"{wanted.shape}: the outputs are in another order")
             raise RuleBroken("batch-axis-first", f"output {index} has shape {got.shape}, the model's "
                                                  f"{wanted.shape} (batch of {len(wanted)} first)")
     if reason := non_finite_reason(outputs):
@@ -42,12 +49,59 @@ def check_close(got: list[np.ndarray], wanted: list[np.ndarray], bounds: list[np
                 what: str) -> None:
     """Every element of every output of `got` within its bound of `wanted` (the worst one in the message)."""
     for index, (a, b, bound) in enumerate(zip(got, wanted, bounds)):
+        if a.shape != b.shape:
+            raise RuleBroken(rule, f"output {index} has shape {a.shape}, {what} {b.shape}")
         difference = np.abs(a.astype(np.float64) - b)
         allowed = np.broadcast_to(bound, difference.shape)
         worst = np.unravel_index(np.argmax(difference - allowed), difference.shape)
         if not difference[worst] <= allowed[worst]:
             raise RuleBroken(rule, f"output {index} is {difference[worst]:.3g} from {what} at "
                                    f"{tuple(map(int, worst))}; allowed {allowed[worst]:.3g}")
+
+
+def within(got: list[np.ndarray], wanted: list[np.ndarray], bounds: list[np.ndarray]) -> bool:
+    """Whether every output of `got` has the shape of its `wanted` and lies within its bound of it."""
+    return all(a.shape == b.shape and bool(np.all(np.abs(a.astype(np.float64) - b) <= bound))
+               for a, b, bound in zip(got, wanted, bounds))
+
+
+def check_order(got: list[np.ndarray], wanted: list[np.ndarray], bounds: list[np.ndarray]) -> None:
+    """RuleBroken unless the outputs come in the model's order: where some output is out of bounds, none
+    may be within the bounds of another output of the same shape instead."""
+    for index, (a, b, bound) in enumerate(zip(got, wanted, bounds)):
+        if within([a], [b], [bound]):
+            continue
+        for other, (b2, bound2) in enumerate(zip(wanted, bounds)):
+            if other != index and within([a], [b2], [bound2]):
+                raise RuleBroken("outputs-in-order", f"output {index} is the model's output {other}: fetch "
+                                                     f"must return the outputs in the model's order")
+
+
+def check_this_call(got: list[np.ndarray], wanted: list[np.ndarray], previous: list[np.ndarray] | None,
+                    bounds: list[np.ndarray]) -> None:
+    """RuleBroken where the outputs are out of bounds of this call's reference (`wanted`) but within those of
+    the session's call before (`previous`, of other inputs): the session returned that call's outputs."""
+    if previous is not None and not within(got, wanted, bounds) and within(got, previous, bounds):
+        raise RuleBroken("outputs-of-this-call", "the outputs are those of the call before (of other "
+                                                 "inputs): execute and fetch must return this call's")
+
+
+def check_quantised(got: list[np.ndarray], reference: list[np.ndarray], noise: list[np.ndarray]) -> None:
+    """RuleBroken where int8 outputs are all within float noise (`noise`: fp32's bounds) of the fp32
+    reference: the artifact runs the fp32 model, whatever it claims."""
+    if within(got, reference, noise):
+        raise RuleBroken("int8-is-quantised", "the int8 outputs are the fp32 outputs, within float noise: "
+                                              "the artifact is not quantised (int8 differs by rounding)")
+
+
+def check_kept(first: list[np.ndarray], kept: list[np.ndarray]) -> None:
+    """RuleBroken unless the arrays a fetch returned (`first`) still hold what they held (`kept`, copies)
+    after the next call: fetch must return arrays of its own, not views of a buffer the runtime reuses."""
+    for index, (now, then) in enumerate(zip(first, kept)):
+        if not np.array_equal(now, then, equal_nan=True):
+            raise RuleBroken("fetch-returns-owned-arrays",
+                             f"output {index} of one call changed when the next call ran: fetch returned a "
+                             f"view of a buffer the runtime reuses; return a copy (np.array(out))")
 
 
 def bounds(tolerance: Tolerance, reference: list[np.ndarray]) -> list[np.ndarray]:

@@ -1,6 +1,7 @@
-"""Load artifacts in a fresh process, as a cell's measure process does, and report each session's info(): some
-runtimes (TensorFlow) set their thread pools once per process, so only a fresh one shows whether `threads` is
-honoured. Run as `python -m bench_matrix.conformance.fresh` with the jobs as JSON on stdin."""
+"""Load artifacts in a fresh process, as a cell's measure process does, and report each session's info()
+and, on the CPU, how often more threads ran than asked while it executed: some runtimes (TensorFlow) set their
+thread pools once per process, so only a fresh one shows whether `threads` is honoured. Run as
+`python -m bench_matrix.conformance.fresh` with the jobs as JSON on stdin."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from bench_matrix.executors.process import THREAD_VARIABLES
 
@@ -26,12 +29,21 @@ def infos(jobs: list[dict[str, Any]], threads: int, cwd: Path) -> dict[str, dict
 
 
 def _info(job: dict[str, Any]) -> dict[str, Any]:
+    """The job's session's info() and, given inputs (an .npz), its share of oversubscribed samples."""
+    from bench_matrix.conformance.concurrency import oversubscribed
     from bench_matrix.registry import load_backend
 
     try:
         session = load_backend(job["backend"]).load(Path(job["artifact"]), job["meta"], job["target"],
                                                     job["precision"], job["threads"])
-        return {"info": session.info()}
+        found: dict[str, Any] = {"info": session.info()}
+        if job.get("inputs"):
+            with np.load(job["inputs"]) as stored:
+                prepared = session.prepare(dict(stored))
+            session.fetch(session.execute(prepared))  # warm-up
+            found["oversubscribed"] = oversubscribed(lambda: session.fetch(session.execute(prepared)),
+                                                     job["threads"])
+        return found
     except Exception as exc:  # reported against the job's case, not raised
         return {"error": f"{type(exc).__name__}: {exc}"}
 

@@ -3,26 +3,44 @@ case; a failure or skip is kept too, so each later test of the case reports it."
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
+import numpy as np
 import pytest
 
 from bench_matrix.backend import Backend, ConvertRequest, Session
 from bench_matrix.conformance.cases import Case, RuleBroken
-from bench_matrix.conformance.checks import reported_threads
+from bench_matrix.conformance.checks import check_fetched, check_order, check_this_call, reported_threads
+from bench_matrix.conformance.concurrency import oversubscribed
 from bench_matrix.conformance.fresh import infos
 from bench_matrix.conformance.models import LARGE, THREADS, KitModel, build
 from bench_matrix.conformance.watch import watched
 from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.registry import BackendLoadError, load_backend
-from bench_matrix.tensors import take
+from bench_matrix.tensors import Inputs, count, take
 
 T = TypeVar("T")
+Previous = tuple[int | None, list[np.ndarray] | None]  # a session's call before: its batch and reference
+
+
+@contextlib.contextmanager
+def hidden(folder: Path) -> Iterator[None]:
+    """`folder` renamed out of reach in the body (if it exists), then back."""
+    away = folder.with_name(folder.name + ".hidden")
+    moved = folder.exists()
+    if moved:
+        folder.rename(away)
+    try:
+        yield
+    finally:
+        if moved:
+            away.rename(folder)
 
 
 @dataclass
@@ -44,13 +62,17 @@ class Loaded:
 
 
 class Kit:
-    """Makes each thing once per test class, under `root`; `options` are backend options by backend name."""
+    """Makes each thing once per test class, under `root`; `options` are backend options by backend name;
+    threads are counted while the cases of model `sampled` run (None: every model's)."""
 
-    def __init__(self, root: Path, options: dict[str, dict[str, Any]] | None = None):
+    def __init__(self, root: Path, options: dict[str, dict[str, Any]] | None = None,
+                 sampled: str | None = None):
         self.root = root
         self.options = options or {}
+        self.sampled = sampled
         self._outcomes: dict[Any, tuple[bool, Any]] = {}
         self._fresh: dict[str, dict[str, Any]] = {}
+        self._previous: dict[int, tuple[Session, Previous]] = {}  # by id: each session's call before
 
     def _once(self, key: Any, make: Callable[[], T]) -> T:
         """make()'s value, or the exception it raised (a skip included), for `key` at every call."""
@@ -92,7 +114,7 @@ class Kit:
         place = self.root / "artifacts" / case.id
         out = place / f"{which}.tmp" / "model"
         out.mkdir(parents=True)
-        shared = self.root / "shared" / case.backend / f"{case.framework}-{case.model}"
+        shared = self._shared(case)
         shared.mkdir(parents=True, exist_ok=True)
         request = ConvertRequest(source=model.source, step=StrategySpec(case.strategy, case.strategy),
                                  precision=case.precision, target=case.target, out_dir=out,
@@ -114,14 +136,50 @@ class Kit:
         out.parent.rename(final)
         return Artifact(final / "model", stored, writes)
 
+    def _shared(self, case: Case) -> Path:
+        return self.root / "shared" / case.backend / f"{case.framework}-{case.model}"
+
     def load(self, case: Case, which: str = "first") -> Session:
-        """A new session of the case's artifact `which`, loaded with THREADS threads."""
+        """A new session of the case's artifact `which`, loaded with THREADS threads while the conversion's
+        shared_dir is out of reach: the artifact is its out_dir alone."""
         artifact = self.artifact(case, which)
+        backend = self.backend(case.backend)
+        args = (artifact.directory, artifact.meta, case.target, case.precision, THREADS)
         try:
-            return self.backend(case.backend).load(artifact.directory, artifact.meta, case.target,
-                                                   case.precision, THREADS)
+            with hidden(self._shared(case)):
+                return backend.load(*args)
         except Exception as exc:
-            raise RuleBroken("load-succeeds", f"load() raised {type(exc).__name__}: {exc}") from exc
+            try:
+                backend.load(*args)
+            except Exception:
+                raise RuleBroken("load-succeeds", f"load() raised {type(exc).__name__}: {exc}") from exc
+            raise RuleBroken("artifact-lives-in-out_dir",
+                             f"load() raised {type(exc).__name__}: {exc} while shared_dir was out of reach, "
+                             f"and works with it: the artifact must be whole in out_dir (it alone is stored, "
+                             f"measured and shipped)") from exc
+
+    def run(self, session: Session, inputs: Inputs, wanted: list[np.ndarray],
+            allowed: list[np.ndarray]) -> list[np.ndarray]:
+        """The session's outputs on `inputs`, checked as fetch must give them, in the model's order and as
+        this call's, not the call's before (`wanted`: the fp32 reference of these inputs, `allowed`: the
+        precision's bounds)."""
+        previous = self.ran(session, count(inputs), wanted)
+        try:
+            outputs = session.predict(inputs)
+        except Exception as exc:
+            raise RuleBroken("session-runs", f"prepare/execute/fetch raised {type(exc).__name__}: {exc}") \
+                from exc
+        check_fetched(outputs, wanted, previous[0])
+        check_order(outputs, wanted, allowed)
+        check_this_call(outputs, wanted, previous[1], allowed)
+        return outputs
+
+    def ran(self, session: Session, batch: int, wanted: list[np.ndarray] | None = None) -> Previous:
+        """Note that `session` runs a batch of `batch` now (whose reference is `wanted`, if known); what was
+        noted of its call before."""
+        previous = self._previous.get(id(session), (session, (None, None)))[1]
+        self._previous[id(session)] = (session, (batch, wanted))
+        return previous
 
     def loaded(self, case: Case) -> Loaded:
         """The case's first artifact, loaded once for the tests that only run it."""
@@ -131,19 +189,54 @@ class Kit:
 
         return self._once(("loaded", case), make)
 
+    def reloaded(self, case: Case) -> Session:
+        """A second session of the case's first artifact, loaded once for the tests that compare two loads or
+        need a session no other test ran first."""
+        return self._once(("reloaded", case), lambda: self.load(case))
+
     def fresh_info(self, case: Case) -> dict[str, Any]:
-        """info() of the case's first artifact loaded in a fresh process ({"error": ...} if that failed); one
-        process serves every case loaded so far whose info() in this process shows other threads."""
+        """The case's first artifact loaded in a fresh process: its info() and, on the CPU, the share of
+        samples in which more threads ran than asked while it executed the large batch ({"error": ...} if
+        that failed); one process serves every case loaded so far whose info() here shows other threads."""
         self.loaded(case)
         if case.id not in self._fresh:
+            scratch = self.root / "fresh"
+            shutil.rmtree(scratch, ignore_errors=True)
+            scratch.mkdir()
             cases = [key[1] for key, (made, value) in self._outcomes.items()
                      if key[0] == "loaded" and made and key[1].id not in self._fresh
                      and reported_threads(value.info, THREADS) is not None]
             jobs = [{"case": c.id, "backend": c.backend, "artifact": str(self.artifact(c).directory),
                      "meta": self.artifact(c).meta, "target": c.target, "precision": c.precision,
-                     "threads": THREADS} for c in cases]
-            scratch = self.root / "fresh"
-            shutil.rmtree(scratch, ignore_errors=True)
-            scratch.mkdir()
+                     "threads": THREADS, "inputs": self._inputs_file(c, scratch)} for c in cases]
             self._fresh.update(infos(jobs, THREADS, scratch))
         return self._fresh[case.id]
+
+    def oversubscribed(self, case: Case) -> float | None:
+        """In this process: the share of samples in which more threads ran than asked while the case's
+        session executed the large batch; None off the CPU, for a model not sampled, or where the system does
+        not tell."""
+        if not self._sampled(case):
+            return None
+        session, large = self.loaded(case).session, self.model(case.framework, case.model).large
+        self.ran(session, count(large))
+        try:
+            prepared = session.prepare(large)
+            return oversubscribed(lambda: session.fetch(session.execute(prepared)), THREADS)
+        except Exception as exc:
+            raise RuleBroken("session-runs", f"prepare/execute/fetch raised {type(exc).__name__}: {exc}") \
+                from exc
+
+    def _sampled(self, case: Case) -> bool:
+        """Whether the case's threads are counted: on the CPU, for the model sampled (where a runtime runs
+        its threads does not depend on the model)."""
+        return self.sampled in (None, case.model) and self.backend(case.backend).device(case.target) == "cpu"
+
+    def _inputs_file(self, case: Case, scratch: Path) -> str | None:
+        """The case's model's large batch saved in `scratch` for a fresh process; None if not sampled."""
+        if not self._sampled(case):
+            return None
+        path = scratch / f"{case.framework}-{case.model}.npz"
+        if not path.exists():
+            np.savez(path, **self.model(case.framework, case.model).large)
+        return str(path)

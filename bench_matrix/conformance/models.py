@@ -1,7 +1,8 @@
-"""The kit's small real models, the same three in every framework: an image regressor, an image classifier
-and a model with two inputs (float features, int64 token ids) and two outputs; their data and fp32 outputs.
-Their weights are random (He-initialised, zero biases) and their inputs centred, so that every activation
-varies with the input about as much as it is large: a precision check is never vacuous."""
+"""The kit's small real models, the same three in every framework: an image regressor and an image classifier
+with a BatchNorm, and a model with two inputs (float features, int64 token ids) and two outputs of one shape;
+their data and fp32 outputs. Their weights are random (He-initialised, zero biases) and their inputs centred,
+so that every activation varies with the input about as much as it is large: a precision check is never
+vacuous."""
 
 from __future__ import annotations
 
@@ -22,8 +23,19 @@ BUILDERS = {"pytorch": ("bench_matrix.conformance.models_torch", "state_dict"),
             "onnx": ("bench_matrix.conformance.models_onnx", "onnx")}
 SIDE, CHANNELS, CLASSES = 16, 3, 3  # images: 16x16 RGB; the classifier's classes
 FEATURES, TOKENS, VOCABULARY = 6, 5, 10  # multi_io: float features and int64 token ids per sample
-HIDDEN = 16  # the width of every model's last hidden layer
-EVAL, CALIBRATION, LARGE = 16, 40, 256  # samples compared with the reference; calibrated on; timed at once
+HEAD = 2  # the width of each of multi_io's outputs: one shape, so only their values tell their order
+HIDDEN = 16  # the width of the image models' last hidden layer
+# multi_io's hidden layer: wide enough (10 x 128 weights) that TFLite's dynamic-range quantisation, which
+# leaves tensors under 1024 elements in float, quantises it
+WIDE = 128
+# Samples compared with the reference; calibrated on; the largest batch (request.max_batch), run at once by
+# the execute check and the batch check (the calibration samples over again: int8 results differ by
+# rounding, not by clipping, at every batch size).
+EVAL, CALIBRATION, LARGE = 16, 40, 64
+# The batch check's sizes, one after another in one session: every size class that has broken a runtime: 1
+# and 2 (the smallest, and an example batch of 2), odd ones, 15 to 17 around a plan made for 15 samples from
+# an example batch of 2 (ExecuTorch's) and a tile of 8 or 16, and max_batch - 1 and max_batch.
+BATCHES = (1, 2, 3, 7, 15, 16, 17, LARGE - 1, LARGE)
 # What every conversion and load is asked for (settings.threads' default); TensorFlow, whose threads are set
 # once per process, runs the kit's own Keras code with it too, as a cell's process would.
 THREADS = 1
@@ -32,7 +44,8 @@ THREADS = 1
 @dataclass(frozen=True)
 class KitModel:
     """One model as a backend gets it, with the inputs the kit feeds it and the framework's own fp32 outputs
-    on `eval` (the calibration samples start with the `eval` ones: int8 results differ by rounding only)."""
+    on `eval` and `large` (the calibration samples start with the `eval` ones: int8 results differ by
+    rounding only)."""
 
     name: str
     source: SourceModel
@@ -40,6 +53,7 @@ class KitModel:
     calibration: Inputs
     large: Inputs
     reference: list[np.ndarray]
+    large_reference: list[np.ndarray]
 
 
 def build(framework: str, name: str, folder: Path) -> KitModel:
@@ -54,8 +68,10 @@ def build(framework: str, name: str, folder: Path) -> KitModel:
                          inputs=specs(name, channels_last), factory=builder.factory(name))
     calibration = sample(name, CALIBRATION, 1, channels_last)
     evaluated = {key: array[:EVAL] for key, array in calibration.items()}
-    return KitModel(name, source, evaluated, calibration, sample(name, LARGE, 2, channels_last),
-                    builder.reference(source, evaluated))
+    cycled = np.arange(LARGE) % CALIBRATION
+    large = {key: np.take(array, cycled, axis=0) for key, array in calibration.items()}
+    return KitModel(name, source, evaluated, calibration, large, builder.reference(source, evaluated),
+                    builder.reference(source, large))
 
 
 def specs(name: str, channels_last: bool) -> tuple[TensorSpec, ...]:
@@ -78,3 +94,13 @@ def sample(name: str, n: int, seed: int, channels_last: bool) -> Inputs:
     images = (level + across * ramp + down * ramp[:, None]
               + 0.1 * rng.standard_normal((n, CHANNELS, SIDE, SIDE))).astype(np.float32)
     return {"image": np.ascontiguousarray(images.transpose(0, 2, 3, 1)) if channels_last else images}
+
+
+def batch_norm_statistics(channels: int) -> dict[str, np.ndarray]:
+    """The image models' BatchNorm (after the first convolution): seeded scale and statistics (zero shift),
+    named as PyTorch names them; each channel's output keeps a spread of the order of its input's."""
+    rng = np.random.default_rng(3)
+    return {"weight": rng.uniform(0.5, 1.5, channels).astype(np.float32),
+            "bias": np.zeros(channels, np.float32),
+            "running_mean": (0.2 * rng.standard_normal(channels)).astype(np.float32),
+            "running_var": rng.uniform(0.5, 2.0, channels).astype(np.float32)}

@@ -7,8 +7,8 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.conformance.models import CHANNELS, CLASSES, FEATURES, HIDDEN, SIDE, THREADS, TOKENS, \
-    VOCABULARY
+from bench_matrix.conformance.models import CHANNELS, CLASSES, FEATURES, HEAD, HIDDEN, SIDE, THREADS, \
+    TOKENS, VOCABULARY, WIDE, batch_norm_statistics
 from bench_matrix.sources import SourceModel
 from bench_matrix.tensors import Inputs
 
@@ -16,12 +16,16 @@ HE = "he_normal"
 
 
 def image_net(outputs: int) -> Any:
-    """Two strided convolutions and a dense head: (16, 16, 3) -> `outputs`."""
+    """Two strided convolutions, the first with a BatchNorm, and a dense head: (16, 16, 3) -> `outputs`."""
     from bench_matrix.sources.tensorflow import keras
 
     layers = keras().layers
     image = layers.Input((SIDE, SIDE, CHANNELS), name="image")
-    hidden = layers.Conv2D(8, 3, strides=2, activation="relu", kernel_initializer=HE)(image)
+    hidden = layers.Conv2D(8, 3, strides=2, kernel_initializer=HE)(image)
+    norm = layers.BatchNormalization()
+    hidden = layers.ReLU()(norm(hidden))
+    statistics = batch_norm_statistics(8)
+    norm.set_weights([statistics[key] for key in ("weight", "bias", "running_mean", "running_var")])
     hidden = layers.Conv2D(8, 3, strides=2, activation="relu", kernel_initializer=HE)(hidden)
     hidden = layers.Flatten()(hidden)
     hidden = layers.Dense(HIDDEN, activation="relu", kernel_initializer=HE)(hidden)
@@ -29,7 +33,7 @@ def image_net(outputs: int) -> Any:
 
 
 def multi_io() -> Any:
-    """features (6,) and ids int64 (5,) -> [zeta (1,), alpha (2,)]: output names not in sorted order."""
+    """features (6,) and ids int64 (5,) -> [zeta (2,), alpha (2,)]: output names not in sorted order."""
     from bench_matrix.sources.tensorflow import keras
 
     layers = keras().layers
@@ -37,9 +41,9 @@ def multi_io() -> Any:
     ids = layers.Input((TOKENS,), dtype="int64", name="ids")
     embedded = layers.Embedding(VOCABULARY, 4, embeddings_initializer="normal")(ids)
     joined = layers.Concatenate()([features, layers.GlobalAveragePooling1D()(embedded)])
-    hidden = layers.Dense(HIDDEN, activation="relu", kernel_initializer=HE)(joined)
-    return keras().Model([features, ids], [layers.Dense(1, name="zeta", kernel_initializer=HE)(hidden),
-                                           layers.Dense(2, name="alpha", kernel_initializer=HE)(hidden)])
+    hidden = layers.Dense(WIDE, activation="relu", kernel_initializer=HE)(joined)
+    return keras().Model([features, ids], [layers.Dense(HEAD, name="zeta", kernel_initializer=HE)(hidden),
+                                           layers.Dense(HEAD, name="alpha", kernel_initializer=HE)(hidden)])
 
 
 def factory(name: str) -> None:

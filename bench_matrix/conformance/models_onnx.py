@@ -8,7 +8,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from bench_matrix.conformance.models import CHANNELS, CLASSES, FEATURES, HIDDEN, SIDE, TOKENS, VOCABULARY
+from bench_matrix.conformance.models import CHANNELS, CLASSES, FEATURES, HEAD, HIDDEN, SIDE, TOKENS, \
+    VOCABULARY, WIDE, batch_norm_statistics
 from bench_matrix.sources import SourceModel
 from bench_matrix.tensors import Inputs
 
@@ -45,13 +46,16 @@ def _model(nodes: list, inputs: list, outputs: dict[str, int],
 
 
 def image_net(weights: dict[str, np.ndarray]) -> "onnx.ModelProto":
-    """Two strided convolutions and a dense head: `image` (N, 3, 16, 16) -> `output`."""
+    """Two strided convolutions, the first with a BatchNorm, and a dense head: `image` (N, 3, 16, 16) ->
+    `output`."""
     import onnx
     from onnx import helper
 
     image = helper.make_tensor_value_info("image", onnx.TensorProto.FLOAT, ["N", CHANNELS, SIDE, SIDE])
     nodes = [helper.make_node("Conv", ["image", "w1", "b1"], ["c1"], strides=[2, 2]),
-             helper.make_node("Relu", ["c1"], ["r1"]),
+             helper.make_node("BatchNormalization", ["c1", "bn_weight", "bn_bias", "bn_running_mean",
+                                                     "bn_running_var"], ["n1"]),
+             helper.make_node("Relu", ["n1"], ["r1"]),
              helper.make_node("Conv", ["r1", "w2", "b2"], ["c2"], strides=[2, 2]),
              helper.make_node("Relu", ["c2"], ["r2"]), helper.make_node("Flatten", ["r2"], ["flat"]),
              helper.make_node("Gemm", ["flat", "w3", "b3"], ["g3"], transB=1),
@@ -61,7 +65,7 @@ def image_net(weights: dict[str, np.ndarray]) -> "onnx.ModelProto":
 
 
 def multi_io(weights: dict[str, np.ndarray]) -> "onnx.ModelProto":
-    """features (N, 6) and ids int64 (N, 5) -> speed (N, 1), angle (N, 2): the ids' mean embedding beside the
+    """features (N, 6) and ids int64 (N, 5) -> speed (N, 2), angle (N, 2): the ids' mean embedding beside the
     features, one hidden layer, two heads."""
     import onnx
     from onnx import helper
@@ -75,7 +79,7 @@ def multi_io(weights: dict[str, np.ndarray]) -> "onnx.ModelProto":
              helper.make_node("Relu", ["g1"], ["hidden"]),
              helper.make_node("Gemm", ["hidden", "w_speed", "b_speed"], ["speed"], transB=1),
              helper.make_node("Gemm", ["hidden", "w_angle", "b_angle"], ["angle"], transB=1)]
-    return _model(nodes, inputs, {"speed": 1, "angle": 2}, weights)
+    return _model(nodes, inputs, {"speed": HEAD, "angle": HEAD}, weights)
 
 
 def factory(name: str) -> None:
@@ -83,19 +87,21 @@ def factory(name: str) -> None:
 
 
 def save(name: str, folder: Path) -> Path:
-    """The model with seeded He-initialised weights and zero biases, saved as an .onnx file."""
+    """The model with seeded He-initialised weights, zero biases and the kit's BatchNorm statistics, saved as
+    an .onnx file."""
     import onnx
 
     rng = np.random.default_rng(0)
     if name == "multi_io":
         model = multi_io({"embedding": rng.standard_normal((VOCABULARY, 4)).astype(np.float32),
-                          **_dense(rng, "1", FEATURES + 4, HIDDEN), **_dense(rng, "_speed", HIDDEN, 1),
-                          **_dense(rng, "_angle", HIDDEN, 2)})
+                          **_dense(rng, "1", FEATURES + 4, WIDE), **_dense(rng, "_speed", WIDE, HEAD),
+                          **_dense(rng, "_angle", WIDE, HEAD)})
     else:
         model = image_net({"w1": _weights(rng, 8, CHANNELS, 3, 3), "b1": np.zeros(8, np.float32),
                            "w2": _weights(rng, 8, 8, 3, 3), "b2": np.zeros(8, np.float32),
                            **_dense(rng, "3", TRUNK_OUT, HIDDEN),
-                           **_dense(rng, "4", HIDDEN, 2 if name == "regression" else CLASSES)})
+                           **_dense(rng, "4", HIDDEN, 2 if name == "regression" else CLASSES),
+                           **{f"bn_{key}": values for key, values in batch_norm_statistics(8).items()}})
     path = folder / f"{name}.onnx"
     onnx.save(model, str(path))
     return path

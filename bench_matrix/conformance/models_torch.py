@@ -8,7 +8,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bench_matrix.conformance.models import CHANNELS, CLASSES, FEATURES, HIDDEN, VOCABULARY
+from bench_matrix.conformance.models import CHANNELS, CLASSES, FEATURES, HEAD, HIDDEN, VOCABULARY, WIDE, \
+    batch_norm_statistics
 from bench_matrix.sources import SourceModel
 from bench_matrix.tensors import Inputs
 
@@ -19,10 +20,11 @@ TRUNK_OUT = 8 * 3 * 3  # two 3x3 convolutions of stride 2 take 16x16 to 3x3, wit
 
 
 def image_net(outputs: int) -> "nn.Module":
-    """Two strided convolutions and a dense head: (3, 16, 16) -> `outputs`."""
+    """Two strided convolutions, the first with a BatchNorm, and a dense head: (3, 16, 16) -> `outputs`."""
     from torch import nn
 
-    return nn.Sequential(nn.Conv2d(CHANNELS, 8, 3, stride=2), nn.ReLU(), nn.Conv2d(8, 8, 3, stride=2),
+    return nn.Sequential(nn.Conv2d(CHANNELS, 8, 3, stride=2), nn.BatchNorm2d(8), nn.ReLU(),
+                         nn.Conv2d(8, 8, 3, stride=2),
                          nn.ReLU(), nn.Flatten(), nn.Linear(TRUNK_OUT, HIDDEN), nn.ReLU(),
                          nn.Linear(HIDDEN, outputs))
 
@@ -36,7 +38,7 @@ def classification() -> "nn.Module":
 
 
 def multi_io() -> "nn.Module":
-    """forward(features, ids) -> {"speed": (N, 1), "angle": (N, 2)}: a dict with keys not in sorted order."""
+    """forward(features, ids) -> {"speed": (N, 2), "angle": (N, 2)}: a dict with keys not in sorted order."""
     import torch
     from torch import nn
 
@@ -44,8 +46,8 @@ def multi_io() -> "nn.Module":
         def __init__(self) -> None:
             super().__init__()
             self.embedding = nn.Embedding(VOCABULARY, 4)
-            self.body = nn.Sequential(nn.Linear(FEATURES + 4, HIDDEN), nn.ReLU())
-            self.speed, self.angle = nn.Linear(HIDDEN, 1), nn.Linear(HIDDEN, 2)
+            self.body = nn.Sequential(nn.Linear(FEATURES + 4, WIDE), nn.ReLU())
+            self.speed, self.angle = nn.Linear(WIDE, HEAD), nn.Linear(WIDE, HEAD)
 
         def forward(self, features: torch.Tensor, ids: torch.Tensor) -> dict[str, torch.Tensor]:
             hidden = self.body(torch.cat([features, self.embedding(ids).mean(dim=1)], dim=1))
@@ -62,7 +64,8 @@ def factory(name: str) -> str:
 
 
 def save(name: str, folder: Path) -> Path:
-    """The model with seeded He-initialised weights and zero biases, saved as a state_dict."""
+    """The model with seeded He-initialised weights, zero biases and the kit's BatchNorm statistics, saved as
+    a state_dict."""
     import torch
     from torch import nn
 
@@ -72,6 +75,9 @@ def save(name: str, folder: Path) -> Path:
         if isinstance(layer, (nn.Conv2d, nn.Linear)):
             nn.init.kaiming_normal_(layer.weight, nonlinearity="relu")
             nn.init.zeros_(layer.bias)
+        if isinstance(layer, nn.BatchNorm2d):
+            for key, values in batch_norm_statistics(layer.num_features).items():
+                getattr(layer, key).data.copy_(torch.from_numpy(values))
     path = folder / f"{name}.pt"
     torch.save(module.state_dict(), path)
     return path

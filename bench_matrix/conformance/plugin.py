@@ -89,4 +89,4 @@ def cases_not_run(request: pytest.FixtureRequest) -> NotRun:
 def conformance_kit(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Kit:
     """The kit of one BackendConformance subclass: its models, artifacts and sessions, made once."""
     root: Path = tmp_path_factory.mktemp("conformance")
-    return Kit(root, request.cls.backend_options)
+    return Kit(root, request.cls.backend_options, request.cls.models[0])

@@ -93,10 +93,12 @@ def _model_section(index: int, model: ModelSummary, plots: Sequence[Plot]) -> st
 
 
 def _notes(model: ModelSummary) -> list[str]:
-    """The baseline note, suspect cells, and cells whose timing was disturbed or too wide."""
+    """The baseline note, suspect and implausible cells, and cells whose timing was disturbed or too wide."""
     note = baseline_note(model)
     found = [f'<p class="note"><strong>Note:</strong> {esc(note)}</p>'] if note else []
     found += [f'<p class="note bad"><strong>Suspect:</strong> {esc(line)}</p>' for line in model.suspects]
+    found += [f'<p class="note bad"><strong>Implausible:</strong> {esc(line)}</p>'
+              for line in model.implausible_lines]
     found += [f'<p class="note"><strong>Disturbed (~):</strong> {esc(line)}</p>' for line in model.disturbed]
     found += [f'<p class="note"><strong>Wide (~):</strong> {esc(line)}</p>' for line in model.wide]
     return found

@@ -53,7 +53,8 @@ def judge_model(model: ModelSummary, declared: Declared, source: str, overrides:
     if not requirements.data:
         return replace(model, requirements_from=source)
     baseline = model.baseline if model.baseline is not None and model.baseline.status == "ok" else None
-    rows = tuple(replace(row, verdict=judge(row.record, requirements, model.task, baseline))
+    rows = tuple(replace(row, verdict=judge(row.record, requirements, model.task, baseline,
+                                            model.implausible.get(row.record.cell.key)))
                  for row in model.rows)
     candidates = [Candidate(row.record, row.verdict, row.is_baseline) for row in rows]
     found = recommend(model.name, candidates, model.failed, requirements.objective)

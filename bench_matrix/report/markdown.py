@@ -87,6 +87,8 @@ def model_page(model: ModelSummary, plots: Sequence[Plot], out_dir: Path) -> str
     if note:
         lines += [f"> **Note:** {note}", ""]
     lines += [line for suspect in model.suspects for line in (f"> **Suspect:** {_escape_text(suspect)}", "")]
+    lines += [line for cell in model.implausible_lines
+              for line in (f"> **Implausible:** {_escape_text(cell)}", "")]
     lines += [line for cell in model.disturbed for line in (f"> **Disturbed (~):** {_escape(cell)}", "")]
     lines += [line for cell in model.wide for line in (f"> **Wide (~):** {_escape(cell)}", "")]
     lines += ["## Results", ""]

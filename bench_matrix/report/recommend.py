@@ -29,7 +29,8 @@ class Candidate:
 class Recommendation:
     """For one model, target (and host): the best passing cell by `objective` and the runner-up; `ratio`: how
     many times better the best is on the objective, with its 95 % interval where the figures have one;
-    `distinguishable`: that interval excludes 1 (None: no interval); `closest`: when none passes."""
+    `distinguishable`: that interval excludes 1 (None: no interval); `closest`: when none passes; `failed`:
+    the cells that failed to run there (never judged)."""
 
     model: str
     target: str
@@ -43,13 +44,20 @@ class Recommendation:
     ratio_ci: tuple[float, float] | None = None
     distinguishable: bool | None = None
     closest: tuple[Candidate, ...] = ()
+    failed: int = 0
+
+    @property
+    def passing_text(self) -> str:
+        """'9 of 11, 2 failed': the passing cells of every cell that ran here, failed ones included."""
+        said = f"{self.passing} of {self.judged + self.failed}"
+        return said + (f", {self.failed} failed" if self.failed else "")
 
     def to_json(self) -> dict[str, Any]:
         return {"model": self.model, "target": self.target, "host": self.host, "objective": self.objective,
                 "cell": _key(self.best), "runner_up": _key(self.runner_up),
                 "distinguishable": self.distinguishable,
                 "ratio": self.ratio, "ratio_ci": list(self.ratio_ci) if self.ratio_ci else None,
-                "passing": self.passing, "judged": self.judged,
+                "passing": self.passing, "judged": self.judged, "failed": self.failed,
                 "closest": [{"cell": c.record.cell.key, **c.verdict.to_json()} for c in self.closest]}
 
 
@@ -57,18 +65,20 @@ def recommend(model: str, candidates: Sequence[Candidate], failed: Iterable[Cell
               ) -> tuple[Recommendation, ...]:
     """One recommendation per target and host the model's cells ran on (ok or failed), in that order."""
     groups: dict[tuple[str, str | None], list[Candidate]] = {}
+    failures: dict[tuple[str, str | None], int] = {}
     for record in failed:
-        groups.setdefault((record.cell.target, record.host), [])
+        groups.setdefault(where := (record.cell.target, record.host), [])
+        failures[where] = failures.get(where, 0) + 1
     for candidate in candidates:
         groups.setdefault((candidate.record.cell.target, candidate.record.host), []).append(candidate)
-    return tuple(_group(model, target, host, groups[(target, host)], objective)
-                 for target, host in sorted(groups, key=lambda g: (g[0], g[1] or "")))
+    return tuple(_group(model, *where, groups[where], objective, failures.get(where, 0))
+                 for where in sorted(groups, key=lambda g: (g[0], g[1] or "")))
 
 
-def _group(model: str, target: str, host: str | None, found: list[Candidate], objective: str
+def _group(model: str, target: str, host: str | None, found: list[Candidate], objective: str, failed: int
            ) -> Recommendation:
     passing = [c for c in found if c.verdict.status == PASS]
-    made = Recommendation(model, target, host, objective, len(passing), len(found))
+    made = Recommendation(model, target, host, objective, len(passing), len(found), failed=failed)
     if not passing:
         return replace(made, closest=closest(found))
     ranked = rank(passing, objective)

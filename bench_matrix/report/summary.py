@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from bench_matrix.measure.affinity import NOT_EXPOSED
 from bench_matrix.measure.metrics import HEADLINE
 from bench_matrix.measurement import Measurement
+from bench_matrix.report.plausible import implausible
 from bench_matrix.report.reruns import Rerun, reruns
 from bench_matrix.store import CellRecord
 
@@ -66,6 +67,7 @@ class ModelSummary:
     failed: tuple[CellRecord, ...]
     environment: Environment
     suspects: tuple[str, ...] = ()  # cells at different precisions whose test outputs are bit-identical
+    implausible: Mapping[str, str] = field(default_factory=dict)  # why each cell's record cannot be right
     disturbed: tuple[str, ...] = ()  # cells flagged for interference (every attempt of a phase), and why
     wide: tuple[str, ...] = ()  # cells whose latency interval stayed wider than the target (older: drifted)
     requirements: Requirements | None = None  # what its cells were judged against; None: nothing declared
@@ -76,6 +78,13 @@ class ModelSummary:
     @property
     def task(self) -> str:
         return task_of(self.info)
+
+    @property
+    def implausible_lines(self) -> tuple[str, ...]:
+        """One line per ok cell whose record cannot be right: the cell and why (its verdict fails on it)."""
+        labels = {row.record.cell.key: row.record.cell.label for row in self.rows}
+        return tuple(f"{labels.get(key, key)}: {why}; it is never recommended"
+                     for key, why in sorted(self.implausible.items()))
 
     @property
     def best(self) -> Row | None:
@@ -167,7 +176,8 @@ def _model(name: str, records: list[CellRecord], info: dict[str, Any], history: 
     return ModelSummary(name=name, framework=framework, info=info, baseline_key=baseline_key, baseline=baseline,
                         rows=rows, skipped=tuple(r for r in by_key if r.status == "skipped"),
                         failed=tuple(r for r in by_key if r.status == "failed"), environment=environment(records),
-                        suspects=suspects(ok), disturbed=problem_lines(ok, disturbed_phases),
+                        suspects=suspects(ok), implausible=implausible(ok),
+                        disturbed=problem_lines(ok, disturbed_phases),
                         wide=problem_lines(ok, wide_phases),
                         reruns=reruns(ok, (r for r in history if r.cell.model == name)))
 

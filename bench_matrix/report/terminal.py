@@ -95,6 +95,8 @@ def _print_model(model: ModelSummary, console: Console) -> None:
         console.print(Text(note, style="yellow"))
     for suspect in model.suspects:
         console.print(Text(f"Suspect: {suspect}", style="bold red"))
+    for line in model.implausible_lines:
+        console.print(Text(f"Implausible: {line}", style="bold red"))
     for line in model.disturbed:
         console.print(Text(f"Disturbed (~): {line}", style="yellow"))
     for line in model.wide:

@@ -18,6 +18,7 @@ from bench_matrix.store import CellRecord
 PASS, FAIL, UNCERTAIN = "pass", "fail", "uncertain"
 MIB = 2**20
 HEADLINE_NAMES = {"mse": "MSE", "top1": "top-1", "cosine_similarity": "cosine similarity"}
+PLAUSIBLE = Limit("plausible", "max", 0.0)  # what an implausible record fails (report/plausible.py)
 
 
 @dataclass(frozen=True)
@@ -65,9 +66,13 @@ class Verdict:
                 "uncertain": [c.to_json() for c in self.uncertain]}
 
 
-def judge(record: CellRecord, requirements: Requirements, task: str, baseline: CellRecord | None) -> Verdict:
-    """The verdict on an ok cell of a model of `task` whose ok baseline cell is `baseline` (None: none)."""
+def judge(record: CellRecord, requirements: Requirements, task: str, baseline: CellRecord | None,
+          implausible: str | None = None) -> Verdict:
+    """The verdict on an ok cell of a model of `task` whose ok baseline cell is `baseline` (None: none);
+    a cell whose record cannot be right (`implausible`: why) fails whatever it meets."""
     checks = tuple(_check(limit, record.metrics, task, baseline) for limit in requirements.limits)
+    if implausible:
+        checks += (Check(PLAUSIBLE, FAIL, None, None, f"implausible: {implausible}", math.inf),)
     status = FAIL if any(c.status == FAIL for c in checks) else \
         UNCERTAIN if any(c.status == UNCERTAIN for c in checks) else PASS
     return Verdict(status, checks)

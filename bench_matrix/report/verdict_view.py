@@ -23,7 +23,8 @@ HEADERS = (("Model", "the model"), ("Target", "where its cells ran"),
            ("Best vs runner-up", "how many times better the recommended cell is on the objective, with the "
             "95 % interval of that ratio (paired speed-ups: their intervals combined): distinguishable when "
             "it excludes 1, else a tie"),
-           ("Passing", "ok cells that pass, of those judged"))
+           ("Passing", "ok cells that pass, of every cell that ran (those that failed to run counted, and "
+                       "said, too)"))
 NUMERIC = [False, False, False, True, False, False, True]
 NOT_DECLARED = ("add `requirements:` to the matrix (docs/matrix.md) or try `--require KEY=VALUE`, e.g. "
                 "`--require p50_ms=50 --require max_drop=5%`")
@@ -70,7 +71,7 @@ def closest_lines(models: Sequence[ModelSummary]) -> list[str]:
 
 def _row(found: Recommendation, several: bool) -> list[str]:
     target = found.target + (f" ({found.host})" if several else "")
-    passing = f"{found.passing} of {found.judged}"
+    passing = found.passing_text
     if found.best is None:
         return [found.model, target, NONE_PASSES, DASH, DASH, DASH, passing]
     runner = found.runner_up.cell.label if found.runner_up is not None else DASH
