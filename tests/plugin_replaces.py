@@ -1,5 +1,5 @@
-"""Third-party backends named like the built-in onnxruntime one, installed as .dist-info with entry points: one
-that declares it replaces the built-in backend, and one that does not."""
+"""Third-party backends named like the built-in onnxruntime one, installed as .dist-info with entry points:
+one that declares it replaces the built-in backend, and one that does not."""
 
 from __future__ import annotations
 

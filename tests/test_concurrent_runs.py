@@ -99,8 +99,8 @@ def test_two_runs_on_two_stores_time_one_cell_at_a_time(project: Path):
 
 
 def test_two_identical_runs_on_one_store_measure_each_cell_once_and_with_force_both(project: Path):
-    """Both have chosen their cells when one waits for the timing slot and the other for the first's store lock
-    of the model (without one: for the timing slot too); the second then says the first's are stored."""
+    """Both have chosen their cells when one waits for the timing slot and the other for the first's store
+    lock of the model (without one: for the timing slot too); the second then says the first's are stored."""
     run = ["--workspace", str(project / "ws"), "run", "m.yaml"]
     outputs = run_both(project, run, run, "*.lock")
     assert sum(done(out, "ok") for out in outputs) == len(CELLS)  # each cell measured once

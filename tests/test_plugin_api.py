@@ -77,7 +77,8 @@ def test_plugins_flatten_outputs_and_bind_inputs_as_the_built_in_backends_do() -
 
     assert _torch.flat_outputs is plugin.flat_outputs is tensorflow.flat_outputs
     speed, angle, extra = (torch.full((2, 1), float(v)) for v in (1, 2, 3))
-    assert plugin.flat_outputs({"speed": speed, "angle": (angle, None), "b": [extra]}) == [angle, extra, speed]
+    flat = plugin.flat_outputs({"speed": speed, "angle": (angle, None), "b": [extra]})
+    assert flat == [angle, extra, speed]
 
     class Named(torch.nn.Module):
         def forward(self, ids: torch.Tensor, features: torch.Tensor, scale: float = 2.0) -> torch.Tensor:

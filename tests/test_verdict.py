@@ -250,7 +250,8 @@ def test_the_verdict_counts_the_cells_that_failed_to_run_in_every_format(tmp_pat
     from bench_matrix.report.summary import summarize
     from bench_matrix.report.terminal import print_verdict
 
-    ok = [record("onnxruntime", **timed(1.0), size_bytes=MIB), record("openvino", **timed(2.0), size_bytes=MIB)]
+    ok = [record("onnxruntime", **timed(1.0), size_bytes=MIB),
+          record("openvino", **timed(2.0), size_bytes=MIB)]
     failed = [CellRecord(cell=Cell("m", "pytorch", backend, "none", "fp32", "cpu"), status="failed",
                          env={"host": "h"}) for backend in ("tflite", "torchscript")]
     report = judged(summarize([*ok, *failed], {}, {}), {}, Judging(overrides={"p50_ms": 10}))
