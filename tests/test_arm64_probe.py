@@ -1,5 +1,5 @@
 """What a device says of its CPU, from recorded /proc/cpuinfo files of real boards (where each comes from:
-tests/data/cpuinfo/README.md), and whether it runs emulated."""
+tests/data/cpuinfo/README.md), and how an emulated device's timings are marked in reports and `compare`."""
 
 from __future__ import annotations
 
@@ -7,11 +7,20 @@ import platform
 import struct
 from pathlib import Path
 
+import numpy as np
+
+from bench_matrix.cell import Cell
 from bench_matrix.measure.cpu import X86_FEATURES, emulation, hwcap_flags, parse_cpuinfo, this_cpu
 from bench_matrix.measure.env import capture
+from bench_matrix.report.compare import Side, compare
+from bench_matrix.report.markdown import model_page
+from bench_matrix.report.summary import summarize
+from bench_matrix.store import CellRecord
 
 CPUINFO = Path(__file__).parent / "data" / "cpuinfo"
 QEMU = "emulated: aarch64 programs run by qemu-user on an x86_64 kernel; timings are not the board's"
+BASE = Cell("pilotnet", "pytorch", "pytorch", "none", "fp32", "cpu")
+INT8 = Cell("pilotnet", "pytorch", "onnxruntime", "ptq_static", "int8", "cpu")
 
 
 def _board(name: str):
@@ -58,3 +67,42 @@ def test_records_say_this_machines_architecture_and_features_as_its_probe_reads_
     assert env.get("emulated") == emulated
     if emulated is None and cpu.arch == platform.machine() == "x86_64":
         assert set(cpu.features) <= set(X86_FEATURES.values())
+
+
+def _record(cell: Cell, p50: float, mse: float, env: dict) -> CellRecord:
+    metrics = {"size_bytes": 1_000_000, "mse": mse, "throughput_sps": 1000 / p50,
+               "latency_ms": {"p50": p50, "p90": p50, "p99": p50 * 2, "n": 200}}
+    return CellRecord(cell=cell, status="ok", metrics=metrics, env=env, run_id=1)
+
+
+X86 = {"host": "workstation", "cpu": "AMD EPYC", "arch": "x86_64", "cpu_features": ["AVX2"]}
+ARM = {"host": "arm64-qemu", "cpu": "qemu aarch64 CPU on AMD EPYC", "arch": "aarch64",
+       "cpu_features": ["fp16", "int8 dot product", "SVE"], "emulated": QEMU}
+
+
+def test_the_report_marks_every_timing_of_an_emulated_device_and_says_why(tmp_path: Path) -> None:
+    records = [_record(BASE, 40.0, 0.010, ARM), _record(INT8, 9.0, 0.013, ARM)]
+    (model,) = summarize(records, {}, {}).models
+    page = model_page(model, (), tmp_path)
+    assert "40.0 (emu)" in page and "9.00 (emu)" in page
+    assert "Timings marked (emu), 2 of 2 cells, come from an emulated device" in page
+    assert "not how fast the board is" in page and f"**Emulated**: {QEMU}" in page
+    assert "**Architecture**: aarch64" in page and "**CPU features**: fp16, int8 dot product, SVE" in page
+    plain = model_page(summarize([_record(BASE, 40.0, 0.010, X86)], {}, {}).models[0], (), tmp_path)
+    assert "(emu)" not in plain.replace('"(emu)"', "") and "Emulated" not in plain
+
+
+def test_compare_of_x86_and_emulated_arm64_judges_accuracy_per_cell_never_timings() -> None:
+    samples = {cell.key: np.full(200, 1.0) for cell in (BASE, INT8)}
+    x86 = Side("x86", [_record(BASE, 1.0, 0.010, X86), _record(INT8, 0.5, 0.0100, X86)], samples, {})
+    arm = Side("arm64", [_record(BASE, 40.0, 0.010, ARM), _record(INT8, 9.0, 0.0130, ARM)], samples, {})
+    result = compare(x86, arm)
+    by_key = {cell.key: cell for cell in result.cells}
+    for cell in by_key.values():
+        timed = [m for m in cell.metrics if m.metric in ("p50", "p99", "throughput")]
+        assert [m.verdict for m in timed] == ["not comparable"] * 3
+        assert {m.why for m in timed} == {"timed on an emulated device in new: not the board's speed"}
+    accuracy = {key: next(m for m in cell.metrics if m.metric == "accuracy") for key, cell in by_key.items()}
+    assert accuracy[BASE.key].verdict == "unchanged"
+    assert accuracy[INT8.key].verdict == "worse" and round(accuracy[INT8.key].change, 9) == 0.3
+    assert result.regressions == [(INT8.key, "accuracy")]
