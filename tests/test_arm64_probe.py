@@ -106,3 +106,52 @@ def test_compare_of_x86_and_emulated_arm64_judges_accuracy_per_cell_never_timing
     assert accuracy[BASE.key].verdict == "unchanged"
     assert accuracy[INT8.key].verdict == "worse" and round(accuracy[INT8.key].change, 9) == 0.3
     assert result.regressions == [(INT8.key, "accuracy")]
+
+
+def test_a_device_is_asked_whether_it_can_run_a_cell_not_whether_it_could_convert_it(tmp_path, monkeypatch):
+    """A Raspberry Pi with LiteRT and no TensorFlow runs .tflite files converted here: its probe (measure_only)
+    must not skip them for the TensorFlow converter it lacks, while this machine's own probe does."""
+    from bench_matrix.jobs import ProbeJob
+    from bench_matrix.jobs.probe import probe
+    from bench_matrix.workspace import Workspace
+
+    _hidden(monkeypatch, "tensorflow")
+    key = ("tflite", "tensorflow", "none", "fp32", "cpu", "keras", "{}", "")
+    here = probe(ProbeJob(Workspace(tmp_path), ("tflite",), (key,)))
+    there = probe(ProbeJob(Workspace(tmp_path), ("tflite",), (key,), measure_only=True))
+    assert "TensorFlow is not installed" in (here.verdicts[key].skip or "")
+    assert there.verdicts[key].skip is None
+
+
+def _hidden(monkeypatch, *modules: str) -> None:
+    """`modules` cannot be found (as on a board that lacks them), without uninstalling anything."""
+    import importlib.util
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name in modules
+                        else find_spec(name, *a))
+
+
+def test_a_device_without_torch_skips_every_torch_backend_naming_it(monkeypatch) -> None:
+    """Seen on the emulated board: `pytorch: cpu: ready` without torch, and its GPU probes crashing with
+    ModuleNotFoundError."""
+    from bench_matrix_backends.pytorch import PyTorchBackend
+    from bench_matrix_backends.torch_compile import AotInductorBackend, TorchCompileBackend
+    from bench_matrix_backends.torch_tensorrt import TorchTensorRTBackend
+    from bench_matrix_backends.torchscript import TorchScriptBackend
+
+    _hidden(monkeypatch, "torch")
+    for backend in (PyTorchBackend(), TorchScriptBackend(), TorchCompileBackend(), AotInductorBackend(),
+                    TorchTensorRTBackend()):
+        for target in sorted({t for support in backend.supports for t in support.targets}):
+            assert (backend.probe(target, "fp32") or "").startswith("torch is not installed"), backend.name
+
+
+def test_openvino_runs_its_ir_without_onnx_which_only_converting_needs(monkeypatch) -> None:
+    """Seen on the emulated board: every openvino cell skipped for onnx, which only the conversion here uses."""
+    from bench_matrix_backends.openvino import OpenVinoBackend
+
+    _hidden(monkeypatch, "onnx")
+    backend = OpenVinoBackend()
+    assert backend.probe("cpu", "fp32") is None
+    assert (backend.probe_source("pytorch", "state_dict") or "").startswith("onnx is not installed")
