@@ -52,6 +52,8 @@ def test_an_arm64_program_reading_an_x86_cpuinfo_is_emulated_and_takes_its_featu
     # AT_HWCAP (16): fphp, asimdhp, asimddp, sve; AT_HWCAP2 (26): bf16; then AT_NULL
     auxv = struct.pack("<6Q", 16, 1 << 9 | 1 << 10 | 1 << 20 | 1 << 22, 26, 1 << 14, 0, 0)
     assert hwcap_flags(auxv) == {"fphp", "asimdhp", "asimddp", "sve", "bf16"}
+    # recorded on the emulated board (QEMU_CPU=cortex-a76): a Raspberry Pi 5's core, fp16 and dot product only
+    assert hwcap_flags((CPUINFO / "qemu-cortex-a76.auxv").read_bytes()) == {"fphp", "asimdhp", "asimddp"}
 
 
 def test_a_real_board_or_a_32_bit_userland_on_an_arm64_kernel_is_not_emulated() -> None:
@@ -155,3 +157,24 @@ def test_openvino_runs_its_ir_without_onnx_which_only_converting_needs(monkeypat
     backend = OpenVinoBackend()
     assert backend.probe("cpu", "fp32") is None
     assert (backend.probe_source("pytorch", "state_dict") or "").startswith("onnx is not installed")
+
+
+def test_device_check_shows_a_boards_core_features_and_what_it_lacks(capsys) -> None:
+    """`device check`'s environment rows for a Raspberry Pi 5 (its recorded cpuinfo) and for the same core
+    emulated."""
+    from rich.console import Console
+
+    from bench_matrix import __version__
+    from bench_matrix.cli_device import _show_environment
+
+    pi5 = _board("raspberry-pi-5.txt")
+    env = {"os": "Linux 6.6.51+rpt-rpi-2712", "cpu": pi5.model, "arch": pi5.arch,
+           "cpu_features": list(pi5.features), "cores": 4, "memory_gb": 7.9, "gpus": []}
+    hello = {"python": "3.11.2", "bench_matrix": __version__, "env": env}
+    _show_environment(Console(width=200), hello, "/home/pi/bm/bin/python")
+    shown = capsys.readouterr().out
+    assert "  cpu          Cortex-A76 (Raspberry Pi 5 Model B Rev 1.0), 4 cores, 7.9 GB memory\n" in shown
+    assert "  arch         aarch64\n" in shown and "emulated" not in shown
+    assert "  cpu features fp16, int8 dot product (not: int8 matrix multiply, bf16, SVE, SVE2)\n" in shown
+    _show_environment(Console(width=200), {**hello, "env": {**env, "emulated": QEMU}}, "python3")
+    assert f"  emulated     {QEMU}\n" in capsys.readouterr().out

@@ -115,12 +115,14 @@ def _read(path: Path, binary: bool = False) -> str | bytes:
 
 def this_cpu() -> tuple[Cpu, str | None]:
     """This machine's CPU as this process sees it, and why it is emulated (None on real hardware). Emulated,
-    the features are the emulated CPU's (from the auxiliary vector): /proc/cpuinfo is the host's."""
+    the features are the emulated CPU's, from the auxiliary vector: /proc/cpuinfo is the host's, or written
+    for the board."""
     machine = platform.machine()
     cpu = parse_cpuinfo(str(_read(CPUINFO)), machine)
     emulated = emulation(machine, str(_read(KERNEL_ARCH)) or None, cpu.arch)
     if emulated and machine in ARM:
-        cpu = Cpu(machine, f"qemu {machine} CPU on {cpu.model}", hwcap_flags(bytes(_read(AUXV, binary=True))))
+        model = f"{cpu.model} (qemu)" if cpu.arch == machine else f"qemu {machine} CPU on {cpu.model}"
+        cpu = Cpu(machine, model, hwcap_flags(bytes(_read(AUXV, binary=True))))
     return cpu, emulated
 
 
