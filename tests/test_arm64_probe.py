@@ -13,8 +13,10 @@ from bench_matrix.cell import Cell
 from bench_matrix.measure.cpu import X86_FEATURES, emulation, hwcap_flags, parse_cpuinfo, this_cpu
 from bench_matrix.measure.env import capture
 from bench_matrix.report.compare import Side, compare
-from bench_matrix.report.markdown import model_page
+from bench_matrix.report.markdown import index_page, model_page
+from bench_matrix.report.recommend import Recommendation
 from bench_matrix.report.summary import summarize
+from bench_matrix.report.verdict_view import _objective
 from bench_matrix.store import CellRecord
 
 CPUINFO = Path(__file__).parent / "data" / "cpuinfo"
@@ -84,7 +86,11 @@ ARM = {"host": "arm64-qemu", "cpu": "qemu aarch64 CPU on AMD EPYC", "arch": "aar
 
 def test_the_report_marks_every_timing_of_an_emulated_device_and_says_why(tmp_path: Path) -> None:
     records = [_record(BASE, 40.0, 0.010, ARM), _record(INT8, 9.0, 0.013, ARM)]
-    (model,) = summarize(records, {}, {}).models
+    report = summarize(records, {}, {})
+    assert "| 9.00 (emu) |" in index_page(report)  # the fastest cell's p50
+    recommended = Recommendation("pilotnet", "cpu", None, "p50", 1, 2, best=records[1])
+    assert _objective(recommended) == "p50 9.00 (emu) ms"  # the Verdict's objective
+    (model,) = report.models
     page = model_page(model, (), tmp_path)
     assert "40.0 (emu)" in page and "9.00 (emu)" in page
     assert "Timings marked (emu), 2 of 2 cells, come from an emulated device" in page

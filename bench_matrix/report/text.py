@@ -7,7 +7,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from bench_matrix.measurement import RoundsFacts
-from bench_matrix.report.columns import DASH, DELTA_NAMES, fixed, percent, sig, times
+from bench_matrix.report.columns import DASH, DELTA_NAMES, EMULATED, fixed, percent, sig, times
 from bench_matrix.report.summary import ModelSummary, Report, emulated, metric, number, p50
 from bench_matrix.store import CellRecord
 
@@ -231,4 +231,5 @@ def best_text(model: ModelSummary) -> tuple[str, str, str]:
     best = model.best
     if best is None:
         return DASH, DASH, DASH
-    return best.record.cell.label, sig(p50(best.record), 3), times(best.speedup)
+    emu = EMULATED if emulated(best.record) else ""
+    return best.record.cell.label, sig(p50(best.record), 3) + emu, times(best.speedup)
