@@ -54,11 +54,10 @@ def openvino_version() -> str:
 
 
 def missing_reason(precision: str) -> str | None:
-    """Why the backend's libraries cannot be imported here (found without importing them), or None."""
+    """Why the libraries running `precision` need cannot be imported here (found without importing them), or
+    None. int8's NNCF is asked for here too: a probe is not told whether it converts or only runs."""
     if importlib.util.find_spec("openvino") is None:
         return f"openvino is not installed: {INSTALL}"
-    if importlib.util.find_spec("onnx") is None:
-        return f"onnx is not installed (models reach OpenVINO as ONNX): {INSTALL}"
     if precision == "int8" and importlib.util.find_spec("nncf") is None:
         return f"nncf is not installed (int8 is NNCF's post-training quantisation): {INSTALL}"
     return None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 from collections.abc import Sequence
 from contextlib import suppress
 from typing import TYPE_CHECKING, Any
@@ -30,6 +31,13 @@ def torch_dtype(precision: str) -> "torch.dtype":
     import torch
 
     return getattr(torch, DTYPES[precision])
+
+
+def missing_torch() -> str | None:
+    """Why torch cannot be imported here (found without importing it: a device that measures only), or None."""
+    if importlib.util.find_spec("torch") is None:
+        return "torch is not installed: pip install torch (a build for this machine; a Jetson's: NVIDIA's wheels)"
+    return None
 
 
 def cuda_reasons(precision: str, what: str | None = None) -> list[str]:
@@ -184,4 +192,6 @@ class TorchBackend(Backend):
         return torch_versions()
 
     def probe(self, target: str, precision: str) -> str | None:
+        if missing := missing_torch():
+            return missing
         return None if target == "cpu" else "; ".join(cuda_reasons(precision)) or None

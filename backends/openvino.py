@@ -18,7 +18,7 @@ from ._common import static_options_reason
 from ._nncf import METHODS, quantise
 from ._onnx_export import OPSET, fp32_model, graph_feeds
 from ._openvino import DEVICES, OPTION_DEFAULTS, compile_config, device_name, device_reason, in_force, \
-    missing_reason, openvino
+    INSTALL, missing_reason, openvino
 
 if TYPE_CHECKING:
     import openvino as ov
@@ -57,6 +57,9 @@ class OpenVinoBackend(Backend):
         return missing_reason(precision) or device_reason(target, precision)
 
     def probe_source(self, framework: str, source_format: str) -> str | None:
+        """Every source reaches OpenVINO as ONNX: onnx, and tf2onnx for Keras models."""
+        if importlib.util.find_spec("onnx") is None:
+            return f"onnx is not installed (models reach OpenVINO as ONNX): {INSTALL}"
         if framework != "tensorflow" or importlib.util.find_spec("tf2onnx") is not None:
             return None
         return "converting Keras models to ONNX needs tf2onnx, which is not installed (pip install tf2onnx)"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import warnings
 from collections.abc import Iterator
 from importlib.metadata import version
@@ -33,6 +34,12 @@ class TFLiteBackend(Backend):
         return tf_versions("ai-edge-litert")
 
     def probe(self, target: str, precision: str) -> str | None:
+        """Running needs LiteRT's interpreter, or TensorFlow's own where LiteRT is not installed."""
+        if importlib.util.find_spec("ai_edge_litert") is None and missing_tensorflow():
+            return "running .tflite files needs LiteRT (pip install ai-edge-litert) or TensorFlow: neither is installed"
+        return None
+
+    def probe_source(self, framework: str, source_format: str) -> str | None:
         return missing_tensorflow()  # TFLiteConverter is TensorFlow's
 
     def option_reason(self, step: StrategySpec, source_format: str) -> str | None:

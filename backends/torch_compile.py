@@ -12,7 +12,7 @@ from bench_matrix.plugin import Backend, ConvertRequest, Session, SourceModel, S
 
 from ._inductor import cell_batches, compile_now, fixed_shapes_reason, inductor_versions, \
     no_precompiled_headers, private_cache, run_batches, source_reason, toolchain_reasons
-from ._torch import TorchSession, exact_fp32, pin_threads, place, quiet_torch, torch_dtype
+from ._torch import TorchSession, exact_fp32, missing_torch, pin_threads, place, quiet_torch, torch_dtype
 from .torch_tensorrt import export
 
 SUPPORTS = (Support(("pytorch",), ("none",), ("fp32",), ("cpu",)),
@@ -35,7 +35,7 @@ class InductorBackend(Backend):
         return inductor_versions()
 
     def probe(self, target: str, precision: str) -> str | None:
-        return "; ".join(toolchain_reasons(target, precision, self.python_headers)) or None
+        return missing_torch() or "; ".join(toolchain_reasons(target, precision, self.python_headers)) or None
 
     def option_reason(self, step: StrategySpec, source_format: str) -> str | None:
         return source_reason(self.name, source_format)

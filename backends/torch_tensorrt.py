@@ -17,8 +17,8 @@ from bench_matrix.plugin import Backend, ConvertRequest, Session, SourceModel, S
     TensorSpec, count, example_inputs, installed_versions, specs_from_list, specs_to_list
 
 from ._common import batches, calibration_data, static_options_reason
-from ._torch import TorchSession, as_tensors, cuda_reasons, example_tensors, pin_threads, place, quiet_torch, \
-    torch_dtype
+from ._torch import TorchSession, as_tensors, cuda_reasons, example_tensors, missing_torch, pin_threads, place, \
+    quiet_torch, torch_dtype
 
 if TYPE_CHECKING:
     import torch
@@ -47,6 +47,8 @@ class TorchTensorRTBackend(Backend):
 
     def probe(self, target: str, precision: str) -> str | None:
         """The GPU and torch checks of the cuda target, then Torch-TensorRT (and ModelOpt for int8)."""
+        if missing := missing_torch():
+            return missing
         reasons = cuda_reasons(precision, f"TensorRT {precision}")
         import torch
 

@@ -59,7 +59,11 @@ def _check(args: argparse.Namespace, console) -> int:
         hello = link.hello()
         console.print(f"[bold]device {link.device.name}[/]: logged in; host {hello['host']}", highlight=False)
         _show_environment(console, hello, link.device.python)
-        return _show_backends(console, link, args.workspace)
+        usable = _show_backends(console, link, args.workspace)
+        if emulated := hello["env"].get("emulated"):
+            console.print(f"[yellow]{emulated}[/]: records and reports mark every timing measured there",
+                          highlight=False)
+        return usable
     except Unreachable as exc:
         raise UserError(f"device {link.device.name} is unreachable: {exc}") from None
     finally:
@@ -73,12 +77,24 @@ def _show_environment(console, hello: dict[str, Any], python: str) -> None:
     rows = [("python", f"{hello['python']} ({python})"),
             ("bench-matrix", f"{hello['bench_matrix']} (the same as here: {__version__})"),
             ("os", env["os"]), ("cpu", f"{env['cpu']}, {env['cores']} cores, {env['memory_gb']} GB memory"),
-            ("gpus", gpus)]
+            *_cpu_rows(env), ("gpus", gpus)]
     if jetson := env.get("jetson"):
         rows += [("power mode", jetson["nvpmodel"]),
                  ("clocks", ", ".join(f"{k} {v}" for k, v in jetson["clocks"].items()))]
     for label, value in rows:
         console.print(f"  {label:<13}{value}", highlight=False, markup=False, soft_wrap=True)
+
+
+def _cpu_rows(env: dict[str, Any]) -> list[tuple[str, str]]:
+    """The CPU's architecture, the features that matter (those it lacks too) and whether it is emulated."""
+    from bench_matrix.measure.cpu import ARM, ARM_FEATURES, X86_FEATURES
+
+    arch, has = env.get("arch", "unknown"), env.get("cpu_features", [])
+    known = (ARM_FEATURES if arch in ARM else X86_FEATURES).values()
+    lacks = [name for name in known if name not in has]
+    features = (", ".join(has) or "none of note") + (f" (not: {', '.join(lacks)})" if lacks else "")
+    rows = [("arch", arch), ("cpu features", features)]
+    return rows + [("emulated", env["emulated"])] if env.get("emulated") else rows
 
 
 def _show_backends(console, link: Any, workspace: Path) -> int:
@@ -93,7 +109,7 @@ def _show_backends(console, link: Any, workspace: Path) -> int:
 
     ws = Workspace(workspace)
     names = tuple(available())
-    job = ProbeJob(ws, names)
+    job = ProbeJob(ws, names, measure_only=True)
     ended = Flight(Work(job, Limits(ws.log("probe"), PROBE_TIMEOUT_S)), link, link.device.name,
                    lambda _: None).wait()
     if not ended.ok:

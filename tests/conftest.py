@@ -26,26 +26,37 @@ TINY_X = tiny_models.images(16, 2)  # the inputs the `reference` outputs belong 
 FAST_SETTINGS = ("settings: {window_s: 0.01, min_rounds: 2, timing_budget_s: 0.05, warmup_iterations: 2, "
                  "warmup_s: 0.0, batch_size: 8, timeout_s: 120, processes: 1}\n")
 TWO_PROCESSES = ("processes: 1", "processes: 2")  # FAST_SETTINGS.replace(*TWO_PROCESSES): the default's 2
-GPU_NOT_RUN = pytest.StashKey[str]()  # the line saying which gpu-marked tests were deselected, and why
+GPU_NOT_RUN = pytest.StashKey[str]()  # which gpu- and arm64-marked tests were deselected, and why
+ARM64_OPT_IN = "opt-in: `pytest -m arm64` with the emulated arm64 board started (docs/devices.md §7)"
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Files holding slow tests first (pytest-xdist hands out whole files: the longest should start first).
     Without an NVIDIA GPU (the first reason every GPU probe gives), the gpu-marked tests are deselected and
-    reported in one line instead of skipped one by one."""
+    reported in one line instead of skipped one by one; so are the arm64-marked ones unless -m names them."""
     from bench_matrix.hardware import no_gpu_reason
 
     slow = {item.path for item in items if item.get_closest_marker("slow")}
     items.sort(key=lambda item: item.path not in slow)  # stable: a file's tests stay together, in order
 
-    gpu = [item for item in items if item.get_closest_marker("gpu")]
-    if not gpu or (reason := no_gpu_reason()) is None:
+    reasons = {"gpu": no_gpu_reason(),
+               "arm64": None if "arm64" in (config.option.markexpr or "") else ARM64_OPT_IN}
+    lines = [_deselect(config, items, marker, reason) for marker, reason in reasons.items() if reason]
+    if not any(lines):
         return
-    config.hook.pytest_deselected(items=gpu)
-    items[:] = [item for item in items if not item.get_closest_marker("gpu")]
-    config.stash[GPU_NOT_RUN] = f"{len(gpu)} tests marked gpu not run (deselected): {reason}"
+    config.stash[GPU_NOT_RUN] = "\n".join(line for line in lines if line)
     if hasattr(config, "workeroutput"):  # a pytest-xdist worker: the controller prints the summary
         config.workeroutput["gpu_not_run"] = config.stash[GPU_NOT_RUN]
+
+
+def _deselect(config: pytest.Config, items: list[pytest.Item], marker: str, reason: str) -> str:
+    """The tests marked `marker` deselected, and the line saying so (empty where there were none)."""
+    marked = [item for item in items if item.get_closest_marker(marker)]
+    if not marked:
+        return ""
+    config.hook.pytest_deselected(items=marked)
+    items[:] = [item for item in items if not item.get_closest_marker(marker)]
+    return f"{len(marked)} tests marked {marker} not run (deselected): {reason}"
 
 
 @pytest.hookimpl(optionalhook=True)
@@ -56,7 +67,7 @@ def pytest_testnodedown(node: object, error: object) -> None:
 
 
 def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter, config: pytest.Config) -> None:
-    if line := config.stash.get(GPU_NOT_RUN, None):
+    for line in config.stash.get(GPU_NOT_RUN, "").splitlines():
         terminalreporter.write_line(line)
 
 

@@ -335,8 +335,8 @@ def test_tensorflow_backends_skip_where_tensorflow_is_missing(monkeypatch: pytes
                         else find_spec(name, *a))
     for backend in (TensorFlowBackend(), KerasPredictBackend(), TFLiteBackend(), TFTRTBackend()):
         for target in sorted({t for support in backend.supports for t in support.targets}):
-            reason = backend.probe(target, "fp32")
-            assert "TensorFlow is not installed: `make setup` installs" in (reason or ""), backend.name
+            reasons = [backend.probe(target, "fp32"), backend.probe_source("tensorflow", "keras")]
+            assert "TensorFlow is not installed: `make setup` installs" in str(reasons), backend.name
 
 
 def test_onnxruntime_quantises_where_its_pre_processing_fails(source: SourceModel, reference: np.ndarray,

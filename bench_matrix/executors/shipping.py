@@ -50,11 +50,25 @@ def extract(data: bytes, final: Path, ws: Workspace) -> None:
     tmp = ws.partial(final)
     tmp.mkdir()
     with tarfile.open(fileobj=io.BytesIO(data), mode="r") as tar:
-        tar.extractall(tmp, filter="data")
+        if hasattr(tarfile, "data_filter"):
+            tar.extractall(tmp, filter="data")
+        else:
+            tar.extractall(tmp, members=_inside(tar))
     try:
         tmp.rename(final)
     except OSError:  # another job on this machine unpacked it first
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _inside(tar: tarfile.TarFile) -> list[tarfile.TarInfo]:
+    """The pack's members, each a file or folder inside it, else refused: what the `data` filter checks where
+    Python has one (3.11.4 and newer; Debian bookworm's Python, a Raspberry Pi's, is 3.11.2)."""
+    members = tar.getmembers()
+    for member in members:
+        outside = member.name.startswith("/") or ".." in member.name.split("/")
+        if outside or not (member.isfile() or member.isdir()):
+            raise ValueError(f"a shipped pack holds files and folders inside it only, not {member.name!r}")
+    return members
 
 
 def relocate(value: Any, moved: dict[str, str], ws: Workspace) -> Any:

@@ -91,7 +91,7 @@ class SshExecutor(Executor):
         matrix = plan.matrix
         keys = tuple(sorted({verdict_key(matrix, p.cell) for p in cells}))
         training = tuple(sorted({k for p in cells if (k := training_key(matrix, p.cell))}))
-        job = ProbeJob(self.workspace, tuple(sorted({k[0] for k in keys})), keys, training)
+        job = ProbeJob(self.workspace, tuple(sorted({k[0] for k in keys})), keys, training, measure_only=True)
         flight = Flight(Work(job, Limits(self.workspace.log("probe"), PROBE_TIMEOUT_S)), self.links[name],
                         self.hostnames[name], lambda _: None)
         ended = flight.wait()

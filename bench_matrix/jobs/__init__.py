@@ -53,6 +53,8 @@ class ProbeJob(Job):
     training: tuple[TrainingKey, ...] = ()
     model_files: tuple[tuple[str, str, str], ...] = ()  # (framework, source format, path) of user model files
     factories: tuple[tuple[str, tuple[str, ...]], ...] = ()  # (factory, python_path) whose forward to read
+    # a device's probe: conversion and fine-tuning happen where the run started, so only running is judged
+    measure_only: bool = False
 
     def reads(self) -> tuple[Path, ...]:
         return tuple(Path(path) for _, _, path in self.model_files)

@@ -24,8 +24,8 @@ def probe(job: ProbeJob) -> Probe:
     forward's parameters per factory."""
     backends, described = _load(job.backends)
     keys = job.keys if job.keys is not None else _declared(backends)
-    trainers = judge_training(job.training)
-    verdicts = {key: _verdict(backends, described, _converted(key, trainers)) for key in keys}
+    trainers = {key: Verdict() for key in job.training} if job.measure_only else judge_training(job.training)
+    verdicts = {key: _verdict(backends, described, _converted(key, trainers), job.measure_only) for key in keys}
     files = {path: _read(framework, fmt, path) for framework, fmt, path in job.model_files}
     return Probe(described, verdicts, trainers,
                  inputs={path: read and read.inputs for path, read in files.items()},
@@ -65,7 +65,10 @@ def _converted(key: tuple, trainers: dict[TrainingKey, Verdict]) -> tuple:
     return (*head, (judged and judged.format) or source_format, options)
 
 
-def _verdict(backends: dict[str, Backend | None], described: dict[str, Any], key: tuple) -> Verdict:
+def _verdict(backends: dict[str, Backend | None], described: dict[str, Any], key: tuple, measure_only: bool
+             ) -> Verdict:
+    """Whether the backend implements the combination and can run it here (and, unless `measure_only`, read
+    and convert its source here)."""
     name, framework, kind, precision, target, source_format, options = key
     b = backends[name]
     if b is None:
@@ -73,7 +76,8 @@ def _verdict(backends: dict[str, Backend | None], described: dict[str, Any], key
     step = StrategySpec(name=kind, kind=kind, options=json.loads(options))
     invalid = b.invalid_reason(framework, kind, precision, target) or b.option_reason(step, source_format)
     try:
-        reasons = [] if invalid else [b.probe(target, precision), b.probe_source(framework, source_format)]
+        reasons = [] if invalid else [b.probe(target, precision)]
+        reasons += [] if invalid or measure_only else [b.probe_source(framework, source_format)]
         skip = "; ".join(r for r in reasons if r) or None
     except Exception as exc:  # a probe that crashes is a reason, not a crash of the run
         skip = f"probing {name} for {target}/{precision} failed: {type(exc).__name__}: {exc}"

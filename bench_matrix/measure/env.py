@@ -1,5 +1,5 @@
-"""The environment a result was measured in: host, CPU, cores, frequency policy, memory, GPUs, Python and
-library versions."""
+"""The environment a result was measured in: host, CPU (architecture, features, emulation), cores, frequency
+policy, memory, GPUs, Python and library versions."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from importlib.metadata import PackageNotFoundError, version
 from bench_matrix import __version__
 from bench_matrix.hardware import nvidia_gpus
 from bench_matrix.measure.affinity import allowed_cpus, cpu_frequency_state
+from bench_matrix.measure.cpu import cpu_facts
 from bench_matrix.measure.jetson import jetson_state
 
 # Known libraries recorded with every result and in every cell's fingerprint (a backend lists its own in
@@ -18,17 +19,6 @@ from bench_matrix.measure.jetson import jetson_state
 LIBRARIES = ("numpy", "torch", "onnx", "onnxruntime", "onnxruntime-gpu", "tensorflow", "tensorflow-cpu",
              "tf-keras", "tensorflow-model-optimization", "ai-edge-litert", "tf2onnx", "tensorrt",
              "torch-tensorrt")
-
-
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def memory_gb() -> float | None:
@@ -77,9 +67,10 @@ def run_versions() -> dict[str, str]:
 
 
 def capture() -> dict[str, object]:
-    """A snapshot recorded with every result (on a Jetson, with its power mode and clocks)."""
+    """A snapshot recorded with every result: the CPU's model, architecture and features that matter, whether
+    it is emulated (qemu-user: its timings are not the board's), and on a Jetson its power mode and clocks."""
     facts = {
-        "host": host_name(), "os": f"{platform.system()} {platform.release()}", "cpu": cpu_model(),
+        "host": host_name(), "os": f"{platform.system()} {platform.release()}", **cpu_facts(),
         "cores": os.cpu_count(), "cores_usable": len(allowed_cpus()), "cpu_frequency": cpu_frequency_state(),
         "memory_gb": memory_gb(), "gpus": list(nvidia_gpus()), "python": sys.version.split()[0],
         "libraries": library_versions(), "bench_matrix": __version__,

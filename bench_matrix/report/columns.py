@@ -13,6 +13,7 @@ from bench_matrix.report.summary import (
     ModelSummary,
     Row,
     disturbed_phases,
+    emulated,
     figure,
     metric,
     number,
@@ -77,14 +78,17 @@ def _method(row: Row) -> str:
 
 
 APPROXIMATE = " ~"  # after a figure of a timed phase that was disturbed or too wide: see docs/metrics.md
+EMULATED = " (emu)"  # after a timing measured on an emulated device (qemu-user): not the board's speed
 
 
 def _timed(phase: str, read: Callable[[Measurement], Any]) -> Callable[[Row], str]:
-    """A figure of a timed phase, marked APPROXIMATE when that phase never had a clean attempt."""
+    """A figure of a timed phase, marked APPROXIMATE when that phase never had a clean attempt, EMULATED when
+    an emulated device measured it."""
     def render(row: Row) -> str:
         text = sig(figure(row.record, read), 3)
         marked = phase in disturbed_phases(row.record) or phase in wide_phases(row.record)
-        return text + APPROXIMATE if text != DASH and marked else text
+        text = text + APPROXIMATE if text != DASH and marked else text
+        return text + EMULATED if text != DASH and emulated(row.record) else text
     return render
 
 
@@ -127,7 +131,8 @@ TRAILING: tuple[Column, ...] = (
                        "window; \"~\" after a timing figure marks a phase with too many windows disturbed "
                        "by other processes or CPU steal, or whose interval stayed wider than the target "
                        "(older records: no clean attempt); treat it as approximate (the cell is listed "
-                       "under Disturbed or Wide).",
+                       "under Disturbed or Wide); \"(emu)\": measured on an emulated device (qemu-user), "
+                       "not the board's speed.",
            _timed("latency", lambda m: m.latency and m.latency.p50), SPEED),
     Column("p50 CI\n±%", "half the width of the 95 % interval a rerun's p50 falls in while the machine keeps "
            "this run's speed, from the spread of the per-round medians (older records: the p50's confidence "

@@ -7,7 +7,8 @@ how many of each side's latencies lie above the pooled 99th percentile; throughp
 batch durations (threshold alone for records from before they were stored). The samples are autocorrelated
 timing series, not independent draws, so with thousands of them almost any shift is "significant": the
 threshold does the real work; the test stops a few noisy samples from passing for a change. A timed phase
-flagged for interference on either side (every attempt disturbed) is not comparable: it cannot gate. Where
+flagged for interference on either side (every attempt disturbed), or timed on an emulated device (qemu-user),
+is not comparable: it cannot gate. Where
 both records have a speed-up paired by round against their baseline (docs/metrics.md §5), p50 is judged on it
 instead: drift of the machine between the two runs cancels in it, and it changes when the two speed-ups'
 95 % intervals tell them apart (the difference of their logarithms beyond both half-widths combined), beyond
@@ -34,7 +35,7 @@ from scipy.stats import fisher_exact, mannwhitneyu
 from bench_matrix.errors import UserError
 from bench_matrix.measure.metrics import DIRECTIONS, HEADLINE
 from bench_matrix.measurement import Measurement, Speedup
-from bench_matrix.report.summary import disturbed_phases, figure, headline
+from bench_matrix.report.summary import disturbed_phases, emulated, figure, headline
 from bench_matrix.store import CellRecord
 
 METRICS = ("p50", "p99", "throughput", "size", "accuracy")
@@ -202,12 +203,24 @@ def _compare_cell(key: str, pair: _Pair, limits: Mapping[str, float], alpha: flo
     why = _cell_problem(pair)
     if why:
         return CellComparison(key, cell.model, cell.label, (), NOT_COMPARABLE, why, _disturbed(pair))
-    p50 = _twinned(pair, limits) or _paired(pair, limits) or _latency(pair, "p50", limits, alpha)
-    changes = (p50, _latency(pair, "p99", limits, alpha), _throughput(pair, limits, alpha),
-               _size(pair, limits), _accuracy(pair, limits))
+    changes = (*_timings(pair, limits, alpha), _size(pair, limits), _accuracy(pair, limits))
     found = {c.verdict for c in changes}
     verdict = next((v for v in _CELL_ORDER if v in found), UNCHANGED)
     return CellComparison(key, cell.model, cell.label, changes, verdict, None, _disturbed(pair))
+
+
+def _timings(pair: _Pair, limits: Mapping[str, float], alpha: float) -> tuple[MetricChange, ...]:
+    """p50, p99 and throughput; not comparable where a side was timed on an emulated device."""
+    sides = [role for role, _, record in pair.roles() if record is not None and emulated(record)]
+    if not sides:
+        p50 = _twinned(pair, limits) or _paired(pair, limits) or _latency(pair, "p50", limits, alpha)
+        return p50, _latency(pair, "p99", limits, alpha), _throughput(pair, limits, alpha)
+    why = f"timed on an emulated device in {' and '.join(sides)}: not the board's speed"
+    timed = (("p50", "latency_ms.p50", lambda m: m.latency and m.latency.p50, "lower"),
+             ("p99", "latency_ms.p99", lambda m: m.latency and m.latency.p99, "lower"),
+             ("throughput", "throughput_sps", lambda m: m.throughput.sps, "higher"))
+    return tuple(_MetricJudge(metric, name, *_values(pair, name, read)[:2], True, limits[metric], direction)
+                 .not_comparable(why) for metric, name, read, direction in timed)
 
 
 def _cell_problem(pair: _Pair) -> str | None:

@@ -21,9 +21,10 @@ if TYPE_CHECKING:
 
 STATUSES = ("ok", "skipped", "failed")
 # (label, env key) of the hardware/software fields shown in environment blocks, in display order.
-ENV_FIELDS = (("Host", "host"), ("OS", "os"), ("CPU", "cpu"), ("Cores", "cores"), ("Memory GB", "memory_gb"),
-              ("CPU frequency", "cpu_frequency"), ("GPUs", "gpus"), ("Python", "python"),
-              ("bench-matrix", "bench_matrix"))
+ENV_FIELDS = (("Host", "host"), ("OS", "os"), ("CPU", "cpu"), ("Architecture", "arch"),
+              ("CPU features", "cpu_features"), ("Emulated", "emulated"), ("Cores", "cores"),
+              ("Memory GB", "memory_gb"), ("CPU frequency", "cpu_frequency"), ("GPUs", "gpus"),
+              ("Python", "python"), ("bench-matrix", "bench_matrix"))
 
 DRIFT_LIMIT = 0.05  # records from before the rounds: chunk medians of the latency drifted by more (unsteady)
 
@@ -180,6 +181,11 @@ def _model(name: str, records: list[CellRecord], info: dict[str, Any], history: 
                         disturbed=problem_lines(ok, disturbed_phases),
                         wide=problem_lines(ok, wide_phases),
                         reruns=reruns(ok, (r for r in history if r.cell.model == name)))
+
+
+def emulated(record: CellRecord) -> str | None:
+    """Why the record's timings are not its device's (measured on an emulated CPU: qemu-user), or None."""
+    return (record.env or {}).get("emulated")
 
 
 def disturbed_phases(record: CellRecord) -> dict[str, str]:

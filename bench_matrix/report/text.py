@@ -7,8 +7,8 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from bench_matrix.measurement import RoundsFacts
-from bench_matrix.report.columns import DASH, DELTA_NAMES, fixed, percent, sig, times
-from bench_matrix.report.summary import ModelSummary, Report, metric, number, p50
+from bench_matrix.report.columns import DASH, DELTA_NAMES, EMULATED, fixed, percent, sig, times
+from bench_matrix.report.summary import ModelSummary, Report, emulated, metric, number, p50
 from bench_matrix.store import CellRecord
 from bench_matrix.tensors import axes_text, shape_text
 
@@ -41,12 +41,22 @@ def caption(model: ModelSummary) -> str:
     """What the results table shows, how it was timed and how its rows are ordered."""
     batches = ", ".join(map(str, model.batch_sizes)) or DASH
     threads = ", ".join(map(str, model.threads)) or DASH
-    return (f"Rows are the ok cells, baseline first, then fastest p50 first. Latency at batch 1; "
-            f"throughput at batch size {batches}; {threads} thread(s). {timing_line(model)} "
+    return (f"{emulated_line(model)}Rows are the ok cells, baseline first, then fastest p50 first. Latency "
+            f"at batch 1; throughput at batch size {batches}; {threads} thread(s). {timing_line(model)} "
             f"{rerun_line(model)}Speed-up = baseline time ÷ cell time, paired by round (± its 95 % interval; "
             "older records: baseline p50 ÷ cell p50; >1× = faster); "
             "size ratio = baseline size ÷ cell size (>1× = smaller); "
             "↑ = higher is better, ↓ = lower is better.")
+
+
+def emulated_line(model: ModelSummary) -> str:
+    """What the table's timings are where an emulated device measured cells (else nothing): not a board's."""
+    found = sorted({why for row in model.rows if (why := emulated(row.record))})
+    if not found:
+        return ""
+    count = sum(emulated(row.record) is not None for row in model.rows)
+    return (f"Timings marked (emu), {count} of {len(model.rows)} cells, come from an emulated device "
+            f"({'; '.join(found)}): what runs there and how accurately, not how fast the board is. ")
 
 
 def timing_line(model: ModelSummary) -> str:
@@ -234,4 +244,5 @@ def best_text(model: ModelSummary) -> tuple[str, str, str]:
     best = model.best
     if best is None:
         return DASH, DASH, DASH
-    return best.record.cell.label, sig(p50(best.record), 3), times(best.speedup)
+    emu = EMULATED if emulated(best.record) else ""
+    return best.record.cell.label, sig(p50(best.record), 3) + emu, times(best.speedup)

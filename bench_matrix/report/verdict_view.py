@@ -6,9 +6,9 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from bench_matrix.report.columns import sig
+from bench_matrix.report.columns import EMULATED, sig
 from bench_matrix.report.recommend import FIGURES, Recommendation
-from bench_matrix.report.summary import ModelSummary
+from bench_matrix.report.summary import ModelSummary, emulated
 from bench_matrix.report.verdict import figure
 
 INTRO = ("Each ok cell is judged against its model's requirements: pass; fail, naming each requirement "
@@ -86,7 +86,8 @@ def _objective(found: Recommendation) -> str:
     if value is None:
         return DASH
     unit = {"p50": "ms", "p99": "ms", "size": "MiB", "throughput": "samples/s"}[found.objective]
-    text = f"{found.objective} {sig(value, 3)} {unit}"
+    timed = found.objective in ("p50", "p99", "throughput") and emulated(found.best)
+    text = f"{found.objective} {sig(value, 3)}{EMULATED if timed else ''} {unit}"
     speedup = m.speedup.value if m.speedup is not None else None
     return text + (f" ({speedup:.2f}×)" if found.objective == "p50" and speedup else "")
 
