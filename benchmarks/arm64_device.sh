@@ -111,7 +111,8 @@ stop() {
     rm -f "$ROOT/run/bm-sshd.pid"
   fi
   for dir in dev sys proc; do
-    if mountpoint -q "$ROOT/$dir"; then umount -R "$ROOT/$dir"; fi
+    # lazily where a mount below is still busy (seen with /dev after the sshd had ended)
+    if mountpoint -q "$ROOT/$dir"; then umount -R "$ROOT/$dir" 2>/dev/null || umount -R -l "$ROOT/$dir"; fi
   done
   [ "${1:-}" = quietly ] || echo "stopped"
 }
