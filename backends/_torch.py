@@ -34,9 +34,11 @@ def torch_dtype(precision: str) -> "torch.dtype":
 
 
 def missing_torch() -> str | None:
-    """Why torch cannot be imported here (found without importing it: a device that measures only), or None."""
+    """Why torch cannot be imported here (found without importing it: a device that measures only), or
+    None."""
     if importlib.util.find_spec("torch") is None:
-        return "torch is not installed: pip install torch (a build for this machine; a Jetson's: NVIDIA's wheels)"
+        return ("torch is not installed: pip install torch (a build for this machine; a Jetson's: NVIDIA's "
+                "wheels)")
     return None
 
 

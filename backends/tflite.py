@@ -36,7 +36,8 @@ class TFLiteBackend(Backend):
     def probe(self, target: str, precision: str) -> str | None:
         """Running needs LiteRT's interpreter, or TensorFlow's own where LiteRT is not installed."""
         if importlib.util.find_spec("ai_edge_litert") is None and missing_tensorflow():
-            return "running .tflite files needs LiteRT (pip install ai-edge-litert) or TensorFlow: neither is installed"
+            return ("running .tflite files needs LiteRT (pip install ai-edge-litert) or TensorFlow: "
+                    "neither is installed")
         return None
 
     def probe_source(self, framework: str, source_format: str) -> str | None:

@@ -17,8 +17,17 @@ from bench_matrix.plugin import Backend, ConvertRequest, Session, SourceModel, S
     TensorSpec, count, example_inputs, installed_versions, specs_from_list, specs_to_list
 
 from ._common import batches, calibration_data, static_options_reason
-from ._torch import TorchSession, as_tensors, cuda_reasons, example_tensors, missing_torch, pin_threads, place, \
-    quiet_torch, torch_dtype
+from ._torch import (
+    TorchSession,
+    as_tensors,
+    cuda_reasons,
+    example_tensors,
+    missing_torch,
+    pin_threads,
+    place,
+    quiet_torch,
+    torch_dtype,
+)
 
 if TYPE_CHECKING:
     import torch

@@ -16,7 +16,8 @@ from conftest import cli, onnx_matrix_text
 BOARD = Path(os.environ.get("BM_ARM64", Path.home() / ".cache" / "bench-matrix" / "arm64"))
 SSH_CONFIG = BOARD / "ssh_config"
 DEVICE = "arm64-qemu=/opt/bm/bin/python"
-TWO_CELLS = onnx_matrix_text(["tiny"], ["fp32", "int8"]).replace("strategy: [none]", "strategy: [none, ptq_static]")
+TWO_CELLS = onnx_matrix_text(["tiny"], ["fp32", "int8"]).replace("strategy: [none]",
+                                                                  "strategy: [none, ptq_static]")
 pytestmark = pytest.mark.arm64
 
 
@@ -27,8 +28,8 @@ def board() -> list[str]:
         ["ssh", "-F", str(SSH_CONFIG), "-o", "BatchMode=yes", "arm64-qemu", "true"], capture_output=True,
         timeout=60).returncode == 0
     if not reachable:
-        pytest.skip(f"the emulated arm64 board is not running ({SSH_CONFIG}): benchmarks/arm64_device.sh build, "
-                    "then start (as root)")
+        pytest.skip(f"the emulated arm64 board is not running ({SSH_CONFIG}): benchmarks/arm64_device.sh "
+                    "build, then start (as root)")
     return ["--device", DEVICE, "--ssh-config", str(SSH_CONFIG)]
 
 
@@ -57,7 +58,8 @@ def test_two_cells_measured_there_are_marked_emulated_and_compared_on_accuracy_o
                 timeout=1200)
     assert there.returncode == 0, there.stdout + there.stderr
     records = _records(onnx_project / "arm64.sqlite")
-    assert [(r["status"], r["host"], r["env"]["arch"]) for r in records] == [("ok", "arm64-qemu", "aarch64")] * 2
+    seen = [(r["status"], r["host"], r["env"]["arch"]) for r in records]
+    assert seen == [("ok", "arm64-qemu", "aarch64")] * 2
     assert all(r["env"]["emulated"].startswith("emulated: aarch64 programs") for r in records)
     assert "x86_64" == _records(onnx_project / "x86.sqlite")[0]["env"]["arch"]
     report = cli(onnx_project, "report", "--results", "arm64.sqlite", "--format", "md", "--out", "arm")

@@ -117,8 +117,9 @@ def test_compare_of_x86_and_emulated_arm64_judges_accuracy_per_cell_never_timing
 
 
 def test_a_device_is_asked_whether_it_can_run_a_cell_not_whether_it_could_convert_it(tmp_path, monkeypatch):
-    """A Raspberry Pi with LiteRT and no TensorFlow runs .tflite files converted here: its probe (measure_only)
-    must not skip them for the TensorFlow converter it lacks, while this machine's own probe does."""
+    """A Raspberry Pi with LiteRT and no TensorFlow runs .tflite files converted here: its probe
+    (measure_only) must not skip them for the TensorFlow converter it lacks, while this machine's own probe
+    does."""
     from bench_matrix.jobs import ProbeJob
     from bench_matrix.jobs.probe import probe
     from bench_matrix.workspace import Workspace
@@ -156,7 +157,8 @@ def test_a_device_without_torch_skips_every_torch_backend_naming_it(monkeypatch)
 
 
 def test_openvino_runs_its_ir_without_onnx_which_only_converting_needs(monkeypatch) -> None:
-    """Seen on the emulated board: every openvino cell skipped for onnx, which only the conversion here uses."""
+    """Seen on the emulated board: every openvino cell skipped for onnx, which only the conversion here
+    uses."""
     from bench_matrix_backends.openvino import OpenVinoBackend
 
     _hidden(monkeypatch, "onnx")

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from bench_matrix.executors.shipping import extract, pack
+from bench_matrix.workspace import Workspace
 
 
 @pytest.fixture
@@ -35,7 +36,7 @@ def _folder(root: Path) -> Path:
 
 def test_a_pack_unpacks_where_tarfile_has_no_extraction_filters(tmp_path: Path, old_tarfile) -> None:
     _, data = pack(_folder(tmp_path / "here"))
-    extract(data, tmp_path / "there" / "key")
+    extract(data, tmp_path / "there" / "key", Workspace(tmp_path / "ws"))
     assert (tmp_path / "there" / "key" / "model" / "weights" / "w.bin").read_bytes() == b"\0" * 64
 
 
@@ -48,5 +49,5 @@ def test_a_pack_reaching_outside_its_folder_is_refused_there_too(tmp_path: Path,
             info.type, info.linkname = tarfile.SYMTYPE, "/etc/passwd"
         tar.addfile(info, io.BytesIO(b""))
     with pytest.raises(ValueError, match="files and folders inside it only"):
-        extract(buffer.getvalue(), tmp_path / "there" / "key")
+        extract(buffer.getvalue(), tmp_path / "there" / "key", Workspace(tmp_path / "ws"))
     assert not (tmp_path / "escaped").exists() and not (tmp_path / "there" / "key").exists()

@@ -25,7 +25,8 @@ def probe(job: ProbeJob) -> Probe:
     backends, described = _load(job.backends)
     keys = job.keys if job.keys is not None else _declared(backends)
     trainers = {key: Verdict() for key in job.training} if job.measure_only else judge_training(job.training)
-    verdicts = {key: _verdict(backends, described, _converted(key, trainers), job.measure_only) for key in keys}
+    verdicts = {key: _verdict(backends, described, _converted(key, trainers), job.measure_only)
+                for key in keys}
     files = {path: _read(framework, fmt, path) for framework, fmt, path in job.model_files}
     return Probe(described, verdicts, trainers,
                  inputs={path: read and read.inputs for path, read in files.items()},
