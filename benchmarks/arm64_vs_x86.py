@@ -1,6 +1,6 @@
 """What changes on ARM: each cell of matrices/arm64-emulated.yaml measured here (x86) and on the emulated
-arm64 board, side by side, from the two stores (nothing is re-measured). The same artifact and the same test split
-on both sides, so a difference is the architecture's: its kernels and their rounding. Timings are left out
+arm64 board, side by side, from the two stores (nothing is re-measured). The same artifact and the same test
+split on both sides, so a difference is the architecture's: its kernels and their rounding. Timings are left out
 (the board's are qemu's). Prints a Markdown page.
 
     .venv/bin/python benchmarks/arm64_vs_x86.py .bench-matrix/arm64/x86.sqlite \
