@@ -306,10 +306,12 @@ class Runner:
             self._submit(Work(job, limits, on=where), lambda ended, group=group: self._measured(group, ended))
 
     def _rounds(self, group: list[Measuring], baseline: Any) -> RoundsJob:
-        """The rounds job of a model's cells on one machine, paired against their baseline if among them."""
+        """The rounds job of a model's cells on one machine, paired against their baseline if among them, for
+        the answers its requirements ask."""
         keys = {m.plan.cell.key for m in group}
         return RoundsJob(self.ws, tuple(m.job for m in group), tuple(self._log(m.plan).name for m in group),
-                         baseline.key if baseline is not None and baseline.key in keys else None)
+                         baseline.key if baseline is not None and baseline.key in keys else None,
+                         requirements=self.matrix.requirements.of(group[0].plan.cell.model))
 
     def _measured(self, group: list[Measuring], ended: Ended) -> None:
         results = {c.key: c for c in ended.result.cells} if ended.ok else {}

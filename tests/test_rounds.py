@@ -298,7 +298,7 @@ def test_figures_record_the_processes_and_mark_only_cells_that_did_not_leave_nar
 
     base, left, spent = timed(10.0, "budget"), timed(5.0, "width"), timed(5.0, "budget")
     model = spread([base, left, spent])
-    settings = RoundsSettings(target=0.001, window_s=0.1)
+    settings = RoundsSettings(target=0.001, window_s=0.1, asked=True)
     record = figures(left, base, settings, Limits(), {LATENCY: model}).fields
     assert record["rounds"]["processes"] == 2 and record["rounds"]["rounds"] == 6
     assert record["rounds"]["model_spread"] == pytest.approx(model.relative, abs=1e-6)
@@ -329,7 +329,7 @@ def test_a_cell_wide_for_want_of_rounds_says_about_how_many_times_as_many_would_
 
     base, cell = timed(10.0), timed(5.0)
     model = spread([base, cell])
-    settings = RoundsSettings(target=0.005, window_s=0.1)
+    settings = RoundsSettings(target=0.005, window_s=0.1, asked=True)
     record = figures(cell, base, settings, Limits(), {LATENCY: model}).fields
     reached, wide = record["rounds"]["reached"], record["interference"]["phases"][LATENCY]["wide"]
     times = float(wide.split("about ")[1].split(" times the rounds would reach it (`timing_budget_s`)")[0])

@@ -15,8 +15,8 @@ from bench_matrix.errors import MatrixError, UserError
 from bench_matrix.matrix.require import parse_require, read_file
 from bench_matrix.matrix.requirements import Declared, Requirements
 from bench_matrix.report.recommend import Candidate, recommend
-from bench_matrix.report.verdict import FAIL, PASS, UNCERTAIN, judge
 from bench_matrix.store import CellRecord
+from bench_matrix.verdict import FAIL, PASS, UNCERTAIN, judge
 
 MIB = 2**20
 BASE = Cell("m", "pytorch", "pytorch", "none", "fp32", "cpu")
@@ -40,7 +40,7 @@ def timed(p50: float, ci: tuple[float, float] | None = None, speedup: tuple[floa
 
 def status(requirements: dict[str, Any], cell: CellRecord, task: str = "regression",
            baseline: CellRecord | None = None) -> tuple[str, list[str]]:
-    verdict = judge(cell, Requirements.from_data(requirements), task, baseline)
+    verdict = judge(cell.metrics, Requirements.from_data(requirements), task, baseline and baseline.metrics)
     return verdict.status, [c.text for c in (verdict.failed or verdict.uncertain)]
 
 
@@ -133,9 +133,9 @@ def test_max_drop_without_a_baseline_result() -> None:
 
 def candidates(*cells: tuple[CellRecord, dict[str, Any]], baseline: CellRecord | None = None
                ) -> list[Candidate]:
-    found = [Candidate(baseline, judge(baseline, Requirements(), "regression", None), True)
+    found = [Candidate(baseline, judge(baseline.metrics, Requirements(), "regression", None), True)
              ] if baseline else []
-    return found + [Candidate(cell, judge(cell, Requirements.from_data(req), "regression", None))
+    return found + [Candidate(cell, judge(cell.metrics, Requirements.from_data(req), "regression", None))
                     for cell, req in cells]
 
 

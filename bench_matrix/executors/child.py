@@ -56,13 +56,16 @@ def main(argv: list[str]) -> int:
 
 
 def serve(job: Any, parent: Connection) -> int:
-    """Open the job's session, say it is ready (its kinds of window and resident memory), then time windows
-    until told to finish; the result or the failure is the last message."""
+    """Open the job's session, say it is ready (its kinds of window and resident memory), then evaluate it and
+    time windows until told to finish; the result or the failure is the last message."""
     try:
         served = resolve(type(job).function)(job)
         rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         _send(parent, {"ok": True, "kinds": list(served.kinds), "rss_mb": rss_mb})
-        while (command := json.loads(parent.recv_bytes()))["do"] == "window":
+        while (command := json.loads(parent.recv_bytes()))["do"] != "finish":
+            if command["do"] == "evaluate":
+                _send(parent, {"ok": True, "fields": served.evaluate()})
+                continue
             window = served.window(command["kind"], command["seconds"])
             _send(parent, {"ok": True, "samples": window.samples, "disturbed": window.disturbed,
                            "interference": window.interference})

@@ -1,6 +1,7 @@
 """A rounds job on this machine (docs/metrics.md §5): each cell's session loaded in `settings.processes`
-processes of its own, the sessions timed in interleaved rounds under the machine's timing lock (the scheduler
-owns the clock), then each cell evaluated in its first; the timed figures come from the rounds."""
+processes of its own and evaluated in its first, the sessions timed in interleaved rounds under the machine's
+timing lock (the scheduler owns the clock) for as long as the answers need, then each cell finished in its
+first; the timed figures come from the rounds."""
 
 from __future__ import annotations
 
@@ -8,28 +9,33 @@ import random
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, contextmanager, nullcontext
 from pathlib import Path
+from typing import Any
 
+from bench_matrix.executors.answers import OpenAnswers
 from bench_matrix.executors.sessions import SessionProcess
 from bench_matrix.jobs import RoundsJob
 from bench_matrix.jobs.results import CellMeasured, Measured, MeasuredGroup
 from bench_matrix.measure import env as environment
 from bench_matrix.measure.machine_lock import TimingWindow, timing_slot
 from bench_matrix.measure.rounds import Spread
-from bench_matrix.measure.schedule import (LATENCY, Rounds, RoundsSettings, SessionLost, Timed,
+from bench_matrix.measure.schedule import (LATENCY, LOOSE, Rounds, RoundsSettings, SessionLost, Timed,
                                            measure_groups, spread)
 from bench_matrix.measurement import Measurement
 from bench_matrix.scenarios.latency import LIMITS
 from bench_matrix.scenarios.timed import SAMPLED, THROUGHPUT, figures
 
 DISTURBED_SHARE = 0.25  # more of a kind's windows disturbed than this marks the cell
+EVERY = 0.02  # every cell's target where no requirements say what is open (compare --remeasure)
 
 
 def rounds_settings(job: RoundsJob) -> RoundsSettings:
-    """The scheduler's settings from the matrix's: the model's budget is its cells' share each."""
+    """The scheduler's settings from the matrix's: the model's budget is its cells' share each; the target
+    the user's `ci_target`, else the loose one where answers decide which cells keep the budget."""
     settings = job.cells[0].settings
+    default = LOOSE if job.requirements is not None else EVERY
     return RoundsSettings(min_rounds=settings.min_rounds, budget_s=settings.timing_budget_s * len(job.cells),
-                          target=settings.ci_target, disturbed_share=DISTURBED_SHARE,
-                          window_s=settings.window_s)
+                          target=settings.ci_target or default, disturbed_share=DISTURBED_SHARE,
+                          window_s=settings.window_s, asked=settings.ci_target is not None)
 
 
 def measure_in_rounds(job: RoundsJob, workdir: Path, logs: Path, on_phase: Callable[[str], None]
@@ -38,8 +44,10 @@ def measure_in_rounds(job: RoundsJob, workdir: Path, logs: Path, on_phase: Calla
     sessions = _Sessions(job, workdir, logs, on_phase, hold=lambda: _slot(job, [], on_phase))
     windows: list[TimingWindow] = []
     settings = rounds_settings(job)
+    answers = OpenAnswers.of(job, settings, sessions.evaluated) if job.requirements is not None else None
     rounds = Rounds(settings, random.Random(), hold=lambda: _slot(job, windows, on_phase),
-                    on_round=lambda n: on_phase(f"round {n + 1}"), references=dict(job.references))
+                    on_round=lambda n: on_phase(f"round {n + 1}"), references=dict(job.references),
+                    answers=answers)
     memory_mb = job.cells[0].settings.memory_share * environment.available_memory_mb()
     try:
         timed = measure_groups(list(sessions.jobs), job.baseline, sessions.open, sessions.close, memory_mb,
@@ -60,8 +68,9 @@ def measure_in_rounds(job: RoundsJob, workdir: Path, logs: Path, on_phase: Calla
 
 class _Sessions:
     """The job's sessions: each cell's processes started together (they load side by side) when the scheduler
-    asks, the cell finished in its first (evaluated, its scenarios run: under `hold`, the machine's timing
-    lock, when one of them is timed) and every process closed once its rounds are done."""
+    asks and the cell evaluated in its first; once its rounds are done, the cell finished there (its
+    scenarios run: under `hold`, the machine's timing lock, when one of them is timed) and every process
+    closed."""
 
     def __init__(self, job: RoundsJob, workdir: Path, logs: Path, on_phase: Callable[[str], None],
                  hold: Callable[[], AbstractContextManager]):
@@ -72,6 +81,7 @@ class _Sessions:
         self.processes = job.cells[0].settings.processes
         self.opened: dict[str, list[SessionProcess]] = {}
         self.finished: dict[str, Measured | SessionLost] = {}
+        self.evaluated: dict[str, dict[str, Any]] = {}  # each cell's fields measured before its rounds
 
     def open(self, key: str) -> list[SessionProcess]:
         job = self.jobs[key]
@@ -84,6 +94,8 @@ class _Sessions:
                 cell.append(SessionProcess(job, self.workdir, log, job.settings.timeout_s))
             for session in cell:
                 session.ready()
+            self.on_phase(f"evaluating {job.cell.label}")
+            self.evaluated[key] = cell[0].evaluate()
         except SessionLost:
             for session in cell:
                 session.kill()
@@ -93,7 +105,7 @@ class _Sessions:
     def close(self, key: str, cell: list[SessionProcess]) -> None:
         """Finish the cell in its first process, then end them all."""
         job = self.jobs[key]
-        self.on_phase(f"evaluating {job.cell.label}")
+        self.on_phase(f"finishing {job.cell.label}")
         timed = any(planned.timed() for planned in job.scenarios)
         try:
             with self.hold() if timed else nullcontext():

@@ -63,9 +63,15 @@ class SessionProcess:
         durations = np.frombuffer(self._raw(WINDOW_LIMIT_S, f"a {kind} window"), dtype="<f8")
         return Window(kind, durations, head["samples"], head["disturbed"], head["interference"])
 
-    def finish(self) -> Measured:
-        """Evaluate the session and run its scenarios (within the cell's time limit); SessionLost on
+    def evaluate(self) -> dict[str, Any]:
+        """Evaluate the session before its rounds: its record's fields besides the timed ones; SessionLost on
         failure."""
+        self._send({"do": "evaluate"})
+        return self._receive(self.timeout_s, "evaluating")["fields"]
+
+    def finish(self) -> Measured:
+        """Finish the session: its record's fields and its scenarios run (within the cell's time limit);
+        SessionLost on failure."""
         self._send({"do": "finish"})
         return from_json(Measured, self._receive(self.timeout_s, "finishing")["value"])
 

@@ -19,6 +19,7 @@ from bench_matrix.jobs.results import (
     Reference,
 )
 from bench_matrix.matrix.expand import TrainingKey, VerdictKey
+from bench_matrix.matrix.requirements import Requirements
 from bench_matrix.matrix.spec import DatasetSpec, ModelSpec, Settings, StrategySpec
 from bench_matrix.sources import SourceModel
 from bench_matrix.tensors import TensorSpec
@@ -188,7 +189,8 @@ class MeasureJob(Job):
 class RoundsJob(Job):
     """Measure a model's converted cells on one machine together, in interleaved rounds (docs/metrics.md §5):
     the executor keeps each cell's session loaded in its own process and owns the clock; the speed-ups are
-    paired against `baseline` (a cell's `id`) when it is among the cells, or as `references` says."""
+    paired against `baseline` (a cell's `id`) when it is among the cells, or as `references` says; the rounds
+    serve the answers the model's `requirements` ask (None: every cell to the same precision)."""
 
     name = "measure"
     function = "bench_matrix.executors.rounds:measure_in_rounds"  # runs in the executor's process
@@ -197,6 +199,7 @@ class RoundsJob(Job):
     logs: tuple[str, ...]  # each cell's log file name, in the folder of the work's log
     baseline: str | None = None
     references: tuple[tuple[str, str], ...] = ()  # (id, the id its speed-up is paired against instead)
+    requirements: Requirements | None = None
 
     def reads(self) -> tuple[Path, ...]:
         return tuple(dict.fromkeys(p for job in self.cells for p in job.reads()))

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 from bench_matrix.cell import Planned
 from bench_matrix.jobs import MeasureJob
@@ -22,12 +23,18 @@ from bench_matrix.scenarios import latency
 from bench_matrix.scenarios.base import Loaded, Outcome
 
 
-@dataclass(frozen=True)
+@dataclass
 class Served:
-    """A cell's loaded session kept alive in its process: windows on demand, then `finish`."""
+    """A cell's loaded session kept alive in its process: evaluated, windows on demand, then `finish`."""
 
     loaded: Loaded
     timer: latency.Timer
+    evaluated: Outcome | None = None
+
+    def evaluate(self) -> dict[str, Any]:
+        """Evaluate the session (before its rounds): what its record holds besides the timed figures."""
+        self.evaluated = latency.run(self.loaded)
+        return self.evaluated.fields
 
     @property
     def kinds(self) -> tuple[str, ...]:
@@ -37,10 +44,11 @@ class Served:
         return self.timer.window(kind, seconds)
 
     def finish(self) -> Measured:
-        """Evaluate the session, then run each planned scenario in order; the timed figures are the
-        executor's to add."""
+        """Evaluate the session unless it was (its peak memory read again now), then run each planned scenario
+        in order; the timed figures are the executor's to add."""
         loaded = self.loaded
-        outcomes = [latency.run(loaded), *(_run(planned, loaded) for planned in loaded.job.scenarios)]
+        evaluated = latency.run(loaded) if self.evaluated is None else latency.peaked(self.evaluated)
+        outcomes = [evaluated, *(_run(planned, loaded) for planned in loaded.job.scenarios)]
         metrics = Measurement.from_json({k: v for outcome in outcomes for k, v in outcome.fields.items()})
         samples = {k: v for outcome in outcomes for k, v in outcome.samples.items()}
         env = {**environment.capture(), "backend_versions": loaded.backend.versions(),

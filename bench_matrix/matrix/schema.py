@@ -298,8 +298,9 @@ SCHEMA: dict[str, Any] = {
                                                                  "a round"),
             "min_rounds": _count(2, 1000, description="rounds before the intervals may stop them"),
             "ci_target": {"type": "number", "exclusiveMinimum": 0, "maximum": 1,
-                          "description": "rounds stop once every cell's p50 and speed-up 95 % intervals are "
-                                         "within ± this fraction (0.02 = ±2 %)"},
+                          "description": "ask for this precision on every cell: its p50 and speed-up 95 % "
+                                         "intervals within ± this fraction (0.02 = ±2 %); unset, a cell "
+                                         "whose answer is settled leaves the rounds at ±5 %"},
             "timing_budget_s": seconds(exclusive=True, description="seconds of rounds per cell at most: a "
                                                                    "model's rounds stop when its cells' "
                                                                    "share is spent"),

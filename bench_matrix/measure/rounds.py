@@ -5,6 +5,7 @@ round by round (drift both cells shared cancels)."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
@@ -99,6 +100,16 @@ def _process_part(levels: Mapping[Slot, float], model: Spread | None) -> list[tu
     degrees of freedom; none with one process, or where the spread is not above 0."""
     own, processes = moderated(process_spread(levels), model), len({j for _, j in levels})
     return [(own.variance / processes, own.dof)] if own and processes > 1 and own.variance > 0 else []
+
+
+def window_spread(levels: Mapping[Slot, float]) -> float | None:
+    """How much one window's level differs from the next one's of the same process, as a relative SD: the
+    MAD of successive rounds' log differences × 1.4826 ÷ √2 (slow drift cancels); None under 3 windows."""
+    steps = [b - a for process in sorted({j for _, j in levels})
+             for a, b in itertools.pairwise([y for (_, j), y in sorted(levels.items()) if j == process])]
+    if len(steps) < 2:
+        return None
+    return 1.4826 * float(np.median(np.abs(np.asarray(steps) - np.median(steps)))) / math.sqrt(2)
 
 
 def log_levels(values: Mapping[Slot, float]) -> dict[Slot, float]:

@@ -1,8 +1,9 @@
 """The rounds scheduler (docs/metrics.md §5): the harness owns the clock. A model's loaded sessions (each cell
 in one or more processes) are timed in short windows, round by round, each round visiting every process of
-every cell once (the baseline's more often) in a fresh random order, until every cell's p50 and speed-up
-intervals are narrow enough (each cell leaves them once it is) or the time budget is spent; as many cells
-are alive at once as fit the memory budget, the baseline in every group."""
+every cell once (the baseline's more often) in a fresh random order; a cell leaves once its p50 and speed-up
+intervals are narrow enough and its answer is settled (the budget goes to the answers still open), until
+none is left or the time budget is spent; as many cells are alive at once as fit the memory budget, the
+baseline in every group."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import math
 import random
 import time
 from collections import Counter
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -49,18 +50,22 @@ class Session(Protocol):
         """Time one window of `kind` now (a short warm-up first); SessionLost when the session is gone."""
 
 
+LOOSE = 0.05  # the precision a cell whose answer is settled leaves at, unless the user asks for another
+
+
 @dataclass(frozen=True)
 class RoundsSettings:
-    """When rounds stop: every interval within ±`target` after `min_rounds`, or `budget_s` spent (or
-    `max_rounds`); a cell whose windows were disturbed more than `disturbed_share` of the time is marked;
-    each window's length (the sessions time it)."""
+    """When rounds stop: every interval within ±`target` after `min_rounds` (`asked`: the user's target, which
+    every cell must reach, else the loose default), or `budget_s` spent (or `max_rounds`); a cell whose
+    windows were disturbed more than `disturbed_share` of the time is marked; each window's length."""
 
     min_rounds: int = 5
     max_rounds: int = 200
     budget_s: float = 60.0
-    target: float = 0.02
+    target: float = LOOSE
     disturbed_share: float = 0.25
     window_s: float = 0.2
+    asked: bool = False
 
 
 Cell = Sequence[Session]  # a cell's session processes, each timed once per round
@@ -75,6 +80,7 @@ class Timed:
     dropped: dict[str, dict[Slot, Window]] = field(default_factory=dict)
     failed: str | None = None
     stop: str = ""  # "width": every interval narrow enough; "budget": time ran out; "rounds": max_rounds
+    open: str | None = None  # why its answer was still open when it last was in the rounds (None: settled)
     counts: Counter[tuple[str, bool]] = field(default_factory=Counter)  # windows by (kind, disturbed)
 
     def add(self, slot: Slot, window: Window) -> None:
@@ -156,18 +162,27 @@ def narrow(timed: Timed, baseline: Timed | None, settings: RoundsSettings,
     return ratio is not None and ratio.rounds >= settings.min_rounds and ratio.half_width <= settings.target
 
 
+class Answers(Protocol):
+    """What the rounds are for: which cells' answers (a verdict, the recommendation) are still open."""
+
+    def open(self, timed: Mapping[str, Timed], live: Collection[str]) -> dict[str, str]:
+        """The cells of `live` whose answer their figures so far leave open, each with why."""
+
+
 class Rounds:
     """Runs the rounds of a model's cells; `rng` orders each round, `clock` (seconds) measures the budget,
     `hold` is held around each group's rounds (the machine's timing lock), `on_round` hears each round
-    begin; `references` pairs a cell's speed-up against another cell than the baseline."""
+    begin; `references` pairs a cell's speed-up against another cell than the baseline; `answers` keeps the
+    cells whose answer is open in the rounds (None: every cell leaves once narrow)."""
 
     def __init__(self, settings: RoundsSettings, rng: random.Random | None = None,
                  clock: Callable[[], float] = time.monotonic,
                  hold: Callable[[], AbstractContextManager] = nullcontext,
                  on_round: Callable[[int], None] = lambda number: None,
-                 references: Mapping[str, str] | None = None):
+                 references: Mapping[str, str] | None = None, answers: Answers | None = None):
         self.settings, self.rng, self.clock = settings, rng or random.Random(), clock
         self.hold, self.on_round, self.references = hold, on_round, dict(references or {})
+        self.answers = answers
         self.number = 0  # rounds run so far, over every group (the baseline's rounds are numbered so)
         self.orders: list[tuple[str, ...]] = []  # each round's cells in the order timed (one per visit)
 
@@ -191,8 +206,8 @@ class Rounds:
             return "width" if settled else "failed"
 
     def _settle(self, live: dict[str, Cell], timed: dict[str, Timed], baseline: str | None) -> bool:
-        """Cells narrow enough leave the rounds (their stop: width), the budget going to the others; a cell
-        stays while another still in them is paired against it. Whether any left."""
+        """Cells narrow enough whose answer is settled leave the rounds (their stop: width), the budget going
+        to the others; a cell stays while another still in them is paired against it. Whether any left."""
         def reference(key: str) -> str | None:
             return self.references.get(key, baseline)
 
@@ -200,13 +215,25 @@ class Rounds:
             return timed[reference(key)] if reference(key) in live else None
 
         model = spread(timed.values())
-        leaving = {key for key in live if narrow(timed[key], against(key), self.settings, model)}
+        still = self._open(live, timed)
+        leaving = {key for key in live
+                   if key not in still and narrow(timed[key], against(key), self.settings, model)}
         while needed := leaving & {reference(key) for key in live if key not in leaving}:
             leaving -= needed
         for key in leaving:
             timed[key].stop = "width"
             del live[key]
         return bool(leaving)
+
+    def _open(self, live: Mapping[str, Cell], timed: dict[str, Timed]) -> dict[str, str]:
+        """The live cells whose answer is open (kept on each cell's Timed too); none before `min_rounds`."""
+        ready = min((timed[key].rounds() for key in live), default=0) >= self.settings.min_rounds
+        if self.answers is None or not ready:
+            return {}
+        still = self.answers.open(timed, live)
+        for key in live:
+            timed[key].open = still.get(key)
+        return still
 
     def visits(self, live: Mapping[str, Cell], baseline: str | None) -> dict[str, int]:
         """How often a round visits each process of each cell: once, and a cell that n others are paired

@@ -13,8 +13,8 @@ from bench_matrix.matrix.require import read_file
 from bench_matrix.matrix.requirements import Declared
 from bench_matrix.report.recommend import Candidate, recommend
 from bench_matrix.report.summary import ModelSummary, Report
-from bench_matrix.report.verdict import judge
 from bench_matrix.store import CellRecord
+from bench_matrix.verdict import judge
 
 SCOPE = "requirements"  # facts: name = the matrix path records carry; value = where it is, what it declares
 
@@ -52,8 +52,9 @@ def judge_model(model: ModelSummary, declared: Declared, source: str, overrides:
     requirements = declared.of(model.name, overrides)
     if not requirements.data:
         return replace(model, requirements_from=source)
-    baseline = model.baseline if model.baseline is not None and model.baseline.status == "ok" else None
-    rows = tuple(replace(row, verdict=judge(row.record, requirements, model.task, baseline,
+    ok = model.baseline is not None and model.baseline.status == "ok"
+    baseline = model.baseline.metrics if ok else None
+    rows = tuple(replace(row, verdict=judge(row.record.metrics, requirements, model.task, baseline,
                                             model.implausible.get(row.record.cell.key)))
                  for row in model.rows)
     candidates = [Candidate(row.record, row.verdict, row.is_baseline) for row in rows]

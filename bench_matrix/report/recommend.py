@@ -5,15 +5,16 @@ to passing."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-from bench_matrix.report.verdict import FAIL, PASS, UNCERTAIN, Verdict, figure
+from bench_matrix.measurement import Measurement
+from bench_matrix.ranking import compare, rank, speedups
 from bench_matrix.store import CellRecord
+from bench_matrix.verdict import FAIL, PASS, UNCERTAIN, Verdict
 
 CLOSEST = 3  # cells listed as closest to passing when none passes
-FIGURES = {"p50": "p50_ms", "p99": "p99_ms", "size": "size_mib", "throughput": "throughput_sps"}
 
 
 @dataclass(frozen=True)
@@ -23,6 +24,14 @@ class Candidate:
     record: CellRecord
     verdict: Verdict
     baseline: bool = False
+
+    @property
+    def key(self) -> str:
+        return self.record.cell.key
+
+    @property
+    def metrics(self) -> Measurement:
+        return self.record.metrics
 
 
 @dataclass(frozen=True)
@@ -84,36 +93,11 @@ def _group(model: str, target: str, host: str | None, found: list[Candidate], ob
     ranked = rank(passing, objective)
     if len(ranked) == 1:
         return replace(made, best=ranked[0].record)
-    ratio, half = compare(ranked[0], ranked[1], objective, _speedups(passing))
+    ratio, half = compare(ranked[0], ranked[1], objective, speedups(passing))
     known = ratio is not None and half is not None
     return replace(made, best=ranked[0].record, runner_up=ranked[1].record, ratio=ratio,
                    ratio_ci=(ratio * math.exp(-half), ratio * math.exp(half)) if known else None,
                    distinguishable=abs(math.log(ratio)) > half if known else None)
-
-
-def rank(candidates: Sequence[Candidate], objective: str) -> list[Candidate]:
-    """Best first by the objective: p50 by the paired speed-up where every cell has one, else by p50; p99 and
-    size lowest first; throughput highest first; ties by cell key."""
-    score = _score(objective, _speedups(candidates))
-    return sorted(candidates, key=lambda c: (score(c), c.record.cell.key))
-
-
-def compare(best: Candidate, other: Candidate, objective: str, paired: bool
-            ) -> tuple[float | None, float | None]:
-    """How many times better `best` is than `other` on the objective, and the half-width of that ratio's
-    95 % interval on the log scale (the two intervals' half-widths combined in quadrature; 0 for sizes; None
-    where a figure has no interval)."""
-    if objective == "p50" and paired:
-        (a, ha), (b, hb) = _speedup(best), _speedup(other)
-        return a / b, math.hypot(ha, hb)
-    (a, ia), (b, ib) = (figure(FIGURES[objective], c.record.metrics) for c in (best, other))
-    if not a or not b or a < 0 or b < 0:
-        return None, None
-    ratio = a / b if objective == "throughput" else b / a
-    if objective == "size":
-        return ratio, 0.0
-    halves = [_log_half(value, interval) for value, interval in ((a, ia), (b, ib))]
-    return ratio, None if None in halves else math.hypot(*halves)
 
 
 def closest(found: Sequence[Candidate]) -> tuple[Candidate, ...]:
@@ -123,44 +107,6 @@ def closest(found: Sequence[Candidate]) -> tuple[Candidate, ...]:
         misses = [check.miss for check in c.verdict.failed]
         return (c.verdict.status != UNCERTAIN, len(misses), sum(misses), c.record.cell.key)
     return tuple(sorted((c for c in found if c.verdict.status in (FAIL, UNCERTAIN)), key=distance)[:CLOSEST])
-
-
-def _score(objective: str, paired: bool) -> Callable[[Candidate], float]:
-    def read(key: str, c: Candidate) -> float:
-        value = figure(key, c.record.metrics)[0]
-        return math.inf if value is None else value
-    if objective == "p50" and paired:
-        return lambda c: -_speedup(c)[0]
-    if objective == "throughput":
-        return lambda c: -read("throughput_sps", c)
-    return lambda c: read(FIGURES[objective], c)
-
-
-def _speedups(candidates: Iterable[Candidate]) -> bool:
-    """Whether every cell has a paired speed-up (the baseline's is 1)."""
-    return all(c.baseline or _speedup(c)[0] > 0 for c in candidates)
-
-
-def _speedup(c: Candidate) -> tuple[float, float]:
-    """The cell's paired speed-up and its interval's half-width on the log scale; the baseline's is (1, 0)."""
-    if c.baseline:
-        return 1.0, 0.0
-    found = c.record.metrics.speedup
-    value = found.value if found is not None and isinstance(found.value, int | float) else 0.0
-    if value <= 0:
-        return 0.0, 0.0
-    interval = found.ci if found is not None and found.ci is not None and len(found.ci) == 2 else None
-    half = _log_half(value, interval)
-    if half is None:
-        half = math.log1p(found.ci_half) if isinstance(found.ci_half, int | float) else 0.0
-    return float(value), half
-
-
-def _log_half(value: float | None, interval: Sequence[float] | None) -> float | None:
-    """The larger side of `interval` around `value` on the log scale, or None."""
-    if value is None or value <= 0 or interval is None or min(interval) <= 0:
-        return None
-    return max(math.log(interval[1] / value), math.log(value / interval[0]), 0.0)
 
 
 def _key(record: CellRecord | None) -> str | None:

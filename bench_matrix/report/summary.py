@@ -17,7 +17,7 @@ from bench_matrix.store import CellRecord
 if TYPE_CHECKING:
     from bench_matrix.matrix.requirements import Requirements
     from bench_matrix.report.recommend import Recommendation
-    from bench_matrix.report.verdict import Verdict
+    from bench_matrix.verdict import Verdict
 
 STATUSES = ("ok", "skipped", "failed")
 # (label, env key) of the hardware/software fields shown in environment blocks, in display order.

@@ -6,10 +6,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from bench_matrix.ranking import FIGURES
 from bench_matrix.report.columns import EMULATED, sig
-from bench_matrix.report.recommend import FIGURES, Recommendation
+from bench_matrix.report.recommend import Recommendation
 from bench_matrix.report.summary import ModelSummary, emulated
-from bench_matrix.report.verdict import figure
+from bench_matrix.verdict import figure
 
 INTRO = ("Each ok cell is judged against its model's requirements: pass; fail, naming each requirement "
          "missed and by how much; or uncertain, where a timed figure's 95 % interval straddles its limit. "

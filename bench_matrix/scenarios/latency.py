@@ -81,7 +81,7 @@ def run(loaded: Loaded) -> Outcome:
     """What the cell's record holds besides its timed figures: size, accuracy, memory, load and the
     session's facts."""
     job, session, settings = loaded.job, loaded.session, loaded.job.settings
-    peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    peak_rss_mb = _peak_rss_mb()
     phase("evaluate")
     accuracy, outputs = _evaluate(job, session)
     converted, manifest = job.converted, job.converted.manifest
@@ -90,13 +90,24 @@ def run(loaded: Loaded) -> Outcome:
                "params": manifest["params"], **accuracy, "outputs_sha256": outputs_digest(outputs),
                "cpu_affinity": loaded.cpus, **_gpu_metrics(loaded.gpu_memory),
                "batch_size": settings.batch_size,
-               "peak_rss_mb": round(peak_rss_mb, 1), "convert_s": manifest["convert_s"],
+               "peak_rss_mb": peak_rss_mb, "convert_s": manifest["convert_s"],
                "load_s": loaded.load_s,
                "threads": settings.threads, "artifact_cached": converted.cached, "session": session.info(),
                "test_samples": int(len(outputs[0])), **_finetune_metrics(job.finetune, manifest["convert_s"])}
     if manifest.get("calibration"):  # how many calibration samples were asked for and used
         metrics["calibration"] = manifest["calibration"]
     return Outcome(metrics)
+
+
+def peaked(evaluated: Outcome) -> Outcome:
+    """An evaluation made before the rounds, with the process's peak memory read again (the rounds' batches
+    may have raised it)."""
+    return Outcome({**evaluated.fields, "peak_rss_mb": max(evaluated.fields["peak_rss_mb"], _peak_rss_mb())},
+                   evaluated.samples)
+
+
+def _peak_rss_mb() -> float:
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
 
 
 def _evaluate(job: MeasureJob, session: Any) -> tuple[dict[str, Any], list[np.ndarray]]:

@@ -14,7 +14,7 @@ import numpy as np
 
 from bench_matrix.measure.interference import Limits
 from bench_matrix.measure.rounds import Interval, Slot, Spread, level_width, moderated, p50_interval
-from bench_matrix.measure.rounds import log_levels, medians, process_spread, rate_interval
+from bench_matrix.measure.rounds import log_levels, medians, process_spread, rate_interval, window_spread
 from bench_matrix.measure.schedule import LATENCY, RoundsSettings, Timed, Window, paired, rates
 from bench_matrix.measure.stats import latency_summary, pack_samples
 from bench_matrix.scenarios.base import Outcome
@@ -47,17 +47,20 @@ def figures(timed: Timed, baseline: Timed | None, settings: RoundsSettings, limi
 
 def _rounds(timed: Timed, settings: RoundsSettings, series: dict[Slot, np.ndarray], model: Spread | None,
             ratio: Interval | None) -> tuple[dict[str, Any], Width | None]:
-    """The record's `rounds` (how many, why they stopped, the width reached: the wider of the run's p50 and
-    the speed-up, the processes and how they differed), and the width reached with its floor."""
-    own = moderated(process_spread(log_levels(medians(series))), model)
+    """The record's `rounds` (how many, why they stopped, the precision asked for and the width reached: the
+    wider of the run's p50 and the speed-up, the answer still open, the processes and how they differed, how
+    one window differed from the next), and the width reached with its floor."""
+    levels = log_levels(medians(series))
+    own, noise = moderated(process_spread(levels), model), window_spread(levels)
     processes = len({j for _, j in timed.windows(LATENCY)})
     p50 = p50_interval(series, model)
     spread = own.relative if own else 0.0
     widths = [Width(level_width(p50), _floor(processes, own), spread) if p50 else None,
               Width(ratio.half_width, _floor(processes, own, model), spread) if ratio else None]
     reached = max((w for w in widths if w is not None), key=lambda w: w.reached, default=None)
-    return ({"rounds": timed.rounds(), "stop": timed.stop, "target": settings.target,
-             "reached": round(reached.reached, 6) if reached else None, "window_s": settings.window_s,
+    return ({"rounds": timed.rounds(), "stop": timed.stop, "target": settings.target, "asked": settings.asked,
+             "reached": round(reached.reached, 6) if reached else None, "open": timed.open,
+             "window_spread": round(noise, 6) if noise is not None else None, "window_s": settings.window_s,
              "processes": processes, "visits": round(timed.visits(), 3),
              "process_spread": round(spread, 6) if own else None,
              "model_spread": round(model.relative, 6) if model else None}, reached)
@@ -126,10 +129,11 @@ def _interference(timed: Timed, settings: RoundsSettings, limits: Limits,
 
 
 def _wide(timed: Timed, settings: RoundsSettings, reached: Width | None) -> str | None:
-    """Why the latency figures are marked when their intervals stayed wider than the target, and what would
-    narrow them (a cell that left the rounds narrow is not marked: its final width pools the model's process
-    spread over every cell's rounds)."""
-    if timed.stop == "width" or (reached is not None and reached.reached <= settings.target):
+    """Why the latency figures are marked when their intervals stayed wider than the target the user asked
+    for, and what would narrow them (a cell that left the rounds narrow is not marked: its final width pools
+    the model's process spread over every cell's rounds); None unless the user asked for a target."""
+    narrow = timed.stop == "width" or (reached is not None and reached.reached <= settings.target)
+    if not settings.asked or narrow:
         return None
     width = f"±{reached.reached:.1%}" if reached is not None else "no interval"
     ended = {"budget": "the time budget was spent", "rounds": "the most rounds were run"}.get(timed.stop,

@@ -1,6 +1,6 @@
-"""The verdict on an ok cell against its model's requirements (docs/results.md §8), from its stored record
-only: pass; fail, naming each requirement missed and by how much; uncertain where a timed figure's 95 %
-interval straddles its limit."""
+"""The verdict on a cell's measurement against its model's requirements (docs/results.md §8): pass; fail,
+naming each requirement missed and by how much; uncertain where a timed figure's 95 % interval straddles its
+limit. The report judges stored records by it, the rounds their figures so far."""
 
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ from bench_matrix.matrix.requirements import TIMED, Limit, Requirements
 from bench_matrix.measure.metrics import DIRECTIONS, HEADLINE
 from bench_matrix.measurement import Measurement
 from bench_matrix.scenarios import selectable
-from bench_matrix.store import CellRecord
 
 PASS, FAIL, UNCERTAIN = "pass", "fail", "uncertain"
 MIB = 2**20
@@ -66,11 +65,11 @@ class Verdict:
                 "uncertain": [c.to_json() for c in self.uncertain]}
 
 
-def judge(record: CellRecord, requirements: Requirements, task: str, baseline: CellRecord | None,
+def judge(metrics: Measurement, requirements: Requirements, task: str, baseline: Measurement | None,
           implausible: str | None = None) -> Verdict:
-    """The verdict on an ok cell of a model of `task` whose ok baseline cell is `baseline` (None: none);
+    """The verdict on an ok cell of a model of `task` whose ok baseline cell measured `baseline` (None: none);
     a cell whose record cannot be right (`implausible`: why) fails whatever it meets."""
-    checks = tuple(_check(limit, record.metrics, task, baseline) for limit in requirements.limits)
+    checks = tuple(_check(limit, metrics, task, baseline) for limit in requirements.limits)
     if implausible:
         checks += (Check(PLAUSIBLE, FAIL, None, None, f"implausible: {implausible}", math.inf),)
     status = FAIL if any(c.status == FAIL for c in checks) else \
@@ -98,7 +97,7 @@ def figure(key: str, m: Measurement) -> tuple[float | None, tuple[float, float] 
     return _number(m.figure(key)), None
 
 
-def _check(limit: Limit, m: Measurement, task: str, baseline: CellRecord | None) -> Check:
+def _check(limit: Limit, m: Measurement, task: str, baseline: Measurement | None) -> Check:
     if limit.bound == "drop":
         return _drop(limit, m, task, baseline)
     value, interval = figure(limit.key, m)
@@ -129,12 +128,12 @@ def bounded(limit: Limit, value: float | None, interval: tuple[float, float] | N
                                                  f"straddles {_g(bound)}", max(miss, 0.0))
 
 
-def _drop(limit: Limit, m: Measurement, task: str, baseline: CellRecord | None) -> Check:
+def _drop(limit: Limit, m: Measurement, task: str, baseline: Measurement | None) -> Check:
     """The task's headline metric at most `limit` worse than the baseline's: for an error (MSE) a relative or
     absolute increase, for a score (top-1, cosine similarity) a relative or absolute decrease."""
     key = HEADLINE.get(task, HEADLINE["none"])
     name = HEADLINE_NAMES.get(key, key)
-    base = _number(baseline.metrics.figure(key)) if baseline is not None else None
+    base = _number(baseline.figure(key)) if baseline is not None else None
     if base is None and task == "none":
         base = 1.0  # fidelity to the fp32 outputs: 1 is identical
     if base is None:
