@@ -8,6 +8,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
+TASKS = ("regression", "classification", "none")  # what a model's outputs are scored as (docs/metrics.md)
+
 
 def _typed(value: Any) -> Any:
     return tuple(value) if isinstance(value, list) else value

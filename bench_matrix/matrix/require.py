@@ -11,6 +11,7 @@ import yaml
 
 from bench_matrix.errors import MatrixError, UserError
 from bench_matrix.matrix.requirements import BOUND_KEYS, Declared, Requirements, bound_problem
+from bench_matrix.matrix.validate import StrictValidator, describe
 from bench_matrix.matrix.yamlpos import Located, load_with_lines
 from bench_matrix.scenarios import selectable
 
@@ -108,8 +109,6 @@ def _file_schema() -> dict[str, Any]:
 
 
 def _validate(data: dict[str, Any], schema: dict[str, Any], report: Located) -> None:
-    from bench_matrix.matrix.load import StrictValidator, describe
-
     errors = StrictValidator(schema).iter_errors(data)
     for error in sorted(errors, key=lambda e: list(map(str, e.absolute_path))):
         describe(error, report)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 from bench_matrix.matrix.requirements import SCHEMA as REQUIREMENTS
-from bench_matrix.matrix.spec import TASKS
+from bench_matrix.measurement import TASKS
 from bench_matrix.tensors import DTYPES
 from bench_matrix.workload.driving import defaults as builtin_data
 

@@ -7,10 +7,9 @@ from pathlib import Path
 from typing import Any
 
 from bench_matrix.matrix.requirements import Declared
+from bench_matrix.measurement import TASKS
 from bench_matrix.tensors import TensorSpec
 from bench_matrix.workload.driving.defaults import DEFAULT_DATASET
-
-TASKS = ("regression", "classification", "none")
 
 
 @dataclass(frozen=True)

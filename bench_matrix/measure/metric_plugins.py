@@ -8,7 +8,7 @@ from importlib.metadata import entry_points
 
 import numpy as np
 
-from bench_matrix.measure.metrics import TASKS
+from bench_matrix.measurement import TASKS
 
 ENTRY_POINT_GROUP = "bench_matrix.metrics"
 __all__ = ["ENTRY_POINT_GROUP", "Metric", "MetricPluginError", "load_metric", "metric_names",

@@ -8,7 +8,8 @@ from typing import Any
 
 import numpy as np
 
-TASKS = ("regression", "classification", "none")
+from bench_matrix.measurement import TASKS
+
 # snr_db is clipped to ±this; +300 means identical (float32 rounding alone stays far below it)
 SNR_LIMIT_DB = 300.0
 TOP_K = 5

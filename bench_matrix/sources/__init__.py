@@ -66,6 +66,10 @@ class SourceModel:
             from bench_matrix.sources.pytorch import load_module
 
             return load_module(self)
+        if self.format == "keras_qat":  # our own trainer's output, in the workspace cache
+            from bench_matrix.sources.keras_qat import load_qat
+
+            return load_qat(self.path)
         if self.framework == "tensorflow":
             from bench_matrix.sources.tensorflow import load_keras
 

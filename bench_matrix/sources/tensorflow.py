@@ -62,10 +62,6 @@ def load_keras(source: "SourceModel") -> Any:
     k = keras()
     from tf_keras.src.saving.serialization_lib import SafeModeScope
 
-    if source.format == "keras_qat":  # our own trainer's output, in the workspace cache
-        from bench_matrix.sources.keras_qat import load_qat
-
-        return load_qat(source.path)
     check_keras_file(source.path, source.label)
     try:
         with SafeModeScope(True):

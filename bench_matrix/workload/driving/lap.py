@@ -1,25 +1,40 @@
-"""What a lap records and how its metrics are computed: checkpoints of the reference lap, road departures,
-deviation from the reference line, stop reasons, brain timing (docs/closed-loop.md defines each)."""
+"""How a lap is run (its settings), what it records and how its metrics are computed: checkpoints of the
+reference lap, road departures, deviation from the reference line, stop reasons, brain timing
+(docs/closed-loop.md defines each)."""
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from .circuit import Pose, Track
 from .expert import V_RANGE, W_RANGE
 
-if TYPE_CHECKING:
-    from .simulator import SimSettings
-
 WINDOW_M = 30.0  # gates further than this ahead of the next one do not count yet (no short cuts)
 DEPARTURE_PENALTY = 0.8  # the driving score is multiplied by this for every road departure
 # The suddenness normalises commands as the study's labels: v' = (v - 6.5) / 17.5, w' = (w + 7.1) / 14.2
 _COMMAND_OFFSET = np.array([V_RANGE[0], W_RANGE[0]])
 _COMMAND_SCALE = np.array([V_RANGE[1] - V_RANGE[0], W_RANGE[1] - W_RANGE[0]])
+
+
+@dataclass(frozen=True)
+class SimSettings:
+    """How a lap is run (every duration in seconds of simulated time unless said otherwise)."""
+
+    mode: str = "lock_step"  # lock_step: the world waits for the brain; real_time: it does not
+    brain_period_s: float = 0.05  # target brain cycle (the study's 50 ms)
+    latency_budget_s: float = 0.0  # real_time: added to each measured brain time (emulates a slower target)
+    physics_step_s: float = 0.01
+    time_limit_s: float = 120.0
+    off_road_limit_s: float = 2.0  # the run stops once the car has been off the road this long in one go
+    stuck_window_s: float = 5.0  # ... or once it moved less than stuck_distance_m in this long
+    stuck_distance_m: float = 0.5
+    checkpoint_spacing_m: float = 5.0
+    trace_spacing_m: float = 1.0  # trajectory points kept at least this far apart
 
 
 class NonFiniteCommand(ValueError):

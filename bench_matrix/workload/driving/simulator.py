@@ -12,7 +12,7 @@ import numpy as np
 
 from .circuit import Pose, Track
 from .expert import V_RANGE, W_RANGE, ExpertController
-from .lap import Checkpoints, LapLog
+from .lap import Checkpoints, LapLog, SimSettings
 from .render import Camera, Lighting, render
 from .texture import ground_texture
 
@@ -31,22 +31,6 @@ class Observation:
 
 
 Brain = Callable[[Observation], tuple[float, float]]  # -> raw (v m/s, w)
-
-
-@dataclass(frozen=True)
-class SimSettings:
-    """How a lap is run (every duration in seconds of simulated time unless said otherwise)."""
-
-    mode: str = "lock_step"  # lock_step: the world waits for the brain; real_time: it does not
-    brain_period_s: float = 0.05  # target brain cycle (the study's 50 ms)
-    latency_budget_s: float = 0.0  # real_time: added to each measured brain time (emulates a slower target)
-    physics_step_s: float = 0.01
-    time_limit_s: float = 120.0
-    off_road_limit_s: float = 2.0  # the run stops once the car has been off the road this long in one go
-    stuck_window_s: float = 5.0  # ... or once it moved less than stuck_distance_m in this long
-    stuck_distance_m: float = 0.5
-    checkpoint_spacing_m: float = 5.0
-    trace_spacing_m: float = 1.0  # trajectory points kept at least this far apart
 
 
 @dataclass
