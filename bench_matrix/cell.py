@@ -1,4 +1,5 @@
-"""A cell: one model through one backend with one strategy, precision and target."""
+"""A cell: one model through one backend with one strategy, precision and target; what a backend says of a
+combination (its verdict, by key) and what the plan decides of a cell."""
 
 from __future__ import annotations
 
@@ -6,9 +7,26 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
-from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.strategy import StrategySpec
 
 PlanState = Literal["run", "skip", "invalid"]
+# (backend, framework, conversion kind, precision, target, source format, conversion options as JSON, training
+# key as JSON or ""): everything a backend needs to judge a combination before any model is loaded (after a
+# fine-tuning, the format converted is the trainer's output, which the probe substitutes)
+VerdictKey = tuple[str, str, str, str, str, str, str, str]
+# (framework, source format, training steps as JSON, task): what a trainer needs to judge a fine-tuning
+# strategy
+TrainingKey = tuple[str, str, str, str]
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """A backend's answer for one combination: not valid (why), or valid but not runnable here (why)."""
+
+    invalid: str | None = None
+    skip: str | None = None
+    by: str | None = None  # for a fine-tuning strategy: the trainer that will apply it
+    format: str | None = None  # ... and the format of the model it writes
 
 
 @dataclass(frozen=True, order=True)

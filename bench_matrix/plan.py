@@ -21,7 +21,7 @@ from bench_matrix.matrix.spec import DatasetSpec, Matrix, ModelSpec
 from bench_matrix.matrix.yamlpos import Located
 from bench_matrix.measure import env as environment
 from bench_matrix.registry import available
-from bench_matrix.scenarios import selectable
+from bench_matrix.registry import scenarios
 from bench_matrix.sources.code import model_code
 from bench_matrix.sources.forward_call import call_problem
 from bench_matrix.sources.model_io import batch_problem
@@ -96,7 +96,7 @@ def _probe(matrix: Matrix, cells: list[Cell], installed: list[str], workspace: W
 def scenarios_of(matrix: Matrix, cell: Cell) -> tuple[Planned, ...]:
     """The scenarios the matrix's sections select for the cell, in matrix order."""
     sections = matrix.scenarios
-    chosen = (s.plan(sections[s.name], matrix, cell) for s in selectable() if s.name in sections)
+    chosen = (s.plan(sections[s.name], matrix, cell) for s in scenarios() if s.name in sections)
     return tuple(p for p in chosen if p is not None)
 
 

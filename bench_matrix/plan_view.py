@@ -12,11 +12,11 @@ from rich.table import Table
 from bench_matrix.cell import CellPlan
 from bench_matrix.executors.local import probe_here
 from bench_matrix.jobs import ProbeJob
-from bench_matrix.matrix.expand import Verdict, VerdictKey
+from bench_matrix.cell import Verdict, VerdictKey
 from bench_matrix.measure import env as environment
 from bench_matrix.plan import ModelPlan, Plan, defaulted, matrix_line, timed_inputs
 from bench_matrix.registry import available, vocabulary
-from bench_matrix.scenarios import selectable
+from bench_matrix.registry import scenarios
 from bench_matrix.selection import Filters
 from bench_matrix.store import ResultStore
 from bench_matrix.tensors import OPEN_LENGTH, TensorSpec, axes_text, concrete, open_axes, shape_text
@@ -36,9 +36,9 @@ def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, res
     here = {environment.host_name()}
     cells = [p for p in plan.cells if filters.keep(p.cell)]
     table = Table(title=f"cells of {plan.matrix.path}")
-    scenarios = [s for s in selectable() if s.name in plan.matrix.scenarios]
+    chosen = [s for s in scenarios() if s.name in plan.matrix.scenarios]
     for column in ("model", "backend", "strategy", "precision", "target", "state", "reason",
-                   *(s.title for s in scenarios)):
+                   *(s.title for s in chosen)):
         table.add_column(column, overflow="fold")
     counts = {"run": 0, "stored": 0, "skip": 0, "invalid": 0}
     for p in sorted((p for p in cells if p.state != "invalid"), key=lambda p: (p.state, p.cell)):
@@ -47,7 +47,7 @@ def show_plan(console: Console, plan: Plan, ws: Workspace, filters: Filters, res
         counts[state] += 1
         c = p.cell
         table.add_row(c.model, c.backend, c.strategy, c.precision, c.target, STATE_STYLE[state],
-                      escape(p.reason or ""), *(_planned(p, s.name) for s in scenarios))
+                      escape(p.reason or ""), *(_planned(p, s.name) for s in chosen))
     console.print(table)
     invalid = [p for p in cells if p.state == "invalid"]
     counts["invalid"] = len(invalid)

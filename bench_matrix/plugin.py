@@ -2,8 +2,6 @@
 
 from bench_matrix.backend import DEVICES, Backend, ConvertRequest, Session, Support
 from bench_matrix.hardware import cuda_mismatch_reason, no_gpu_reason, precision_reason
-from bench_matrix.matrix.schema import QAT_KINDS
-from bench_matrix.matrix.spec import StrategySpec
 from bench_matrix.measure.env import installed_versions
 from bench_matrix.phases import Epochs
 from bench_matrix.sources import ModelFileError, SourceModel
@@ -14,6 +12,7 @@ from bench_matrix.sources.onnx_file import load_onnx
 from bench_matrix.sources.pytorch import quiet_torch, use_engine
 from bench_matrix.sources.tensorflow import epoch_phases, keras, tensorflow, thread_settings
 from bench_matrix.strategies.base import FineTuned, FineTuneRequest, Trainer, training_arrays, weight_stats
+from bench_matrix.strategy import QAT_KINDS, StrategySpec
 from bench_matrix.tensors import Inputs, TensorSpec, concrete, count, example_inputs, flat_outputs, \
     random_inputs, resize, specs_from_list, specs_to_list, take
 

@@ -1,19 +1,89 @@
-"""Backends are found only through the `bench_matrix.backends` entry-point group, built-in or plugin."""
+"""Every plugin is found through its entry-point group, built-in or third-party, with one way to load it and
+the same errors for a broken one: backends (with their clashes and vocabulary, here), trainers, metrics and
+scenarios (each group declared where its base class lives)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cache
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
 from bench_matrix.backend import Backend
+from bench_matrix.named import resolve
 
 ENTRY_POINT_GROUP = "bench_matrix.backends"
 OWN_DISTRIBUTION = "bench-matrix"  # registers the built-in backends (the bench_matrix_backends package)
 
 
-class BackendLoadError(Exception):
+class PluginError(Exception):
+    """A registered plugin could not be imported or created, or is not what its group holds."""
+
+
+class BackendLoadError(PluginError):
     """A registered backend could not be imported or is not a Backend."""
+
+
+@dataclass(frozen=True)
+class Group:
+    """An entry-point group: its name, the word for one of its plugins, the class each must be an instance of,
+    and the error a broken one raises."""
+
+    name: str
+    kind: str
+    base: type | str  # or "module:Class", imported when a plugin is loaded (a base in a higher layer)
+    error: type[PluginError] = PluginError
+
+    def names(self) -> list[str]:
+        """The registered names, sorted."""
+        return sorted({ep.name for ep in entry_points(group=self.name)})
+
+    def entry(self, name: str) -> EntryPoint:
+        """The (first) registration of `name`."""
+        found = [ep for ep in entry_points(group=self.name) if ep.name == name]
+        if not found:
+            raise self.error(f"no {self.kind} named {name!r} is installed "
+                             f"(installed: {', '.join(self.names()) or 'none'})")
+        return found[0]
+
+    def load(self, name: str) -> Any:
+        """Import and instantiate the plugin registered as `name`."""
+        ep = self.entry(name)
+        base = resolve(self.base) if isinstance(self.base, str) else self.base
+        return _created(_imported(ep, self.kind, self.error), f"{self.kind} {name!r} ({ep.value})", base,
+                        self.error)
+
+    def load_all(self) -> tuple[Any, ...]:
+        """Every registered plugin, by name."""
+        return tuple(self.load(name) for name in self.names())
+
+
+SCENARIOS = Group("bench_matrix.scenarios", "scenario", "bench_matrix.scenarios.base:Scenario")
+
+
+@cache
+def scenarios() -> tuple[Any, ...]:
+    """One instance of each registered scenario (the built-in ones and plugins'), by name: each is selected
+    per cell by its own top-level matrix section."""
+    return SCENARIOS.load_all()
+
+
+def _imported(ep: EntryPoint, kind: str, error: type[PluginError]) -> Any:
+    """What the entry point names, imported."""
+    try:
+        return ep.load()
+    except Exception as exc:  # a broken plugin must not take the tool down
+        raise error(f"{kind} {ep.name!r} ({ep.value}) failed to import: {type(exc).__name__}: {exc}") from exc
+
+
+def _created(cls: Any, where: str, base: type, error: type[PluginError]) -> Any:
+    """An instance of the imported `cls`, which must make a `base`."""
+    if not (isinstance(cls, type) and issubclass(cls, base)):
+        raise error(f"{where} is not a {base.__module__}.{base.__qualname__} subclass")
+    try:
+        return cls()
+    except Exception as exc:  # e.g. an abstract method left unimplemented
+        raise error(f"{where} cannot be created: {type(exc).__name__}: {exc}") from exc
 
 
 @dataclass(frozen=True)
@@ -130,23 +200,18 @@ def backend_class(name: str) -> type[Backend]:
     if entries[name].clash:
         raise BackendLoadError(entries[name].clash)
     ep = EntryPoint(name, entries[name].value, ENTRY_POINT_GROUP)
-    try:
-        cls = ep.load()
-    except Exception as exc:  # a broken plugin must not take the tool down
-        raise BackendLoadError(f"backend {name!r} ({ep.value}) failed to import: {type(exc).__name__}: {exc}") from exc
+    cls = _imported(ep, "backend", BackendLoadError)
     if not (isinstance(cls, type) and issubclass(cls, Backend)):
-        raise BackendLoadError(f"backend {name!r} ({ep.value}) is not a bench_matrix Backend subclass")
+        raise BackendLoadError(f"backend {name!r} ({ep.value}) is not a "
+                               "bench_matrix.backend.Backend subclass")
     return cls
 
 
 def load_backend(name: str) -> Backend:
     """Import and instantiate one registered backend."""
     cls = backend_class(name)
-    try:
-        backend = cls()
-    except Exception as exc:  # e.g. an abstract method left unimplemented
-        raise BackendLoadError(f"backend {name!r} ({cls.__module__}:{cls.__qualname__}) cannot be created: "
-                               f"{type(exc).__name__}: {exc}") from exc
+    where = f"backend {name!r} ({cls.__module__}:{cls.__qualname__})"
+    backend = _created(cls, where, Backend, BackendLoadError)
     if backend.name != name:
         raise BackendLoadError(f"backend registered as {name!r} calls itself {backend.name!r}")
     return backend

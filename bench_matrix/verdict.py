@@ -12,7 +12,7 @@ from typing import Any
 from bench_matrix.matrix.requirements import TIMED, Limit, Requirements
 from bench_matrix.measure.metrics import DIRECTIONS, HEADLINE
 from bench_matrix.measurement import Measurement
-from bench_matrix.scenarios import selectable
+from bench_matrix.registry import scenarios
 
 PASS, FAIL, UNCERTAIN = "pass", "fail", "uncertain"
 MIB = 2**20
@@ -91,7 +91,7 @@ def figure(key: str, m: Measurement) -> tuple[float | None, tuple[float, float] 
     if key == "peak_rss_mib":
         return _number(m.memory.peak_rss_mb), None
     scenario, _, name = key.partition(".")
-    for found in selectable():
+    for found in scenarios():
         if found.name == scenario and name in found.requirements:
             return _number(found.figure(name, m)), None
     return _number(m.figure(key)), None

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from bench_matrix.backend import Backend, ConvertRequest
-from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.strategy import StrategySpec
 from bench_matrix.sources import SourceModel
 from bench_matrix.tensors import Inputs, take
 

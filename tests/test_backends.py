@@ -25,7 +25,7 @@ import torch  # noqa: E402
 
 from bench_matrix import hardware  # noqa: E402
 from bench_matrix.backend import Backend, Session  # noqa: E402
-from bench_matrix.matrix.spec import StrategySpec  # noqa: E402
+from bench_matrix.strategy import StrategySpec  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
 from bench_matrix.tensors import TensorSpec  # noqa: E402
 from bench_matrix_backends.onnxruntime import OnnxRuntimeBackend  # noqa: E402

@@ -18,7 +18,8 @@ from conftest import FAST_SETTINGS, cli, onnx_matrix_text  # noqa: E402
 
 from bench_matrix import data  # noqa: E402
 from bench_matrix.jobs import keys  # noqa: E402
-from bench_matrix.matrix.spec import DatasetSpec, ModelSpec, Preprocess, Settings, SplitSpec, StrategySpec  # noqa: E402
+from bench_matrix.matrix.spec import DatasetSpec, ModelSpec, Preprocess, Settings, SplitSpec  # noqa: E402
+from bench_matrix.strategy import StrategySpec
 from bench_matrix.registry import load_backend  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
 from bench_matrix.sources.code import model_code, module_file  # noqa: E402

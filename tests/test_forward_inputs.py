@@ -24,7 +24,7 @@ import torch  # noqa: E402
 
 from bench_matrix.backend import Backend  # noqa: E402
 from bench_matrix.cli import main  # noqa: E402
-from bench_matrix.matrix.spec import StrategySpec  # noqa: E402
+from bench_matrix.strategy import StrategySpec  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
 from bench_matrix.sources.forward_call import Parameter, call_problem  # noqa: E402
 from bench_matrix.strategies.base import FineTuneRequest  # noqa: E402

@@ -9,7 +9,8 @@ import pytest
 
 from bench_matrix.errors import MatrixError
 from bench_matrix.matrix import load_matrix
-from bench_matrix.matrix.expand import training_key, Verdict, combinations, judge, verdict_key
+from bench_matrix.matrix.expand import training_key, combinations, judge, verdict_key
+from bench_matrix.cell import Verdict
 from bench_matrix.matrix.extended import schema_json
 from bench_matrix.matrix.schema import PRECISIONS
 from bench_matrix.matrix.spec import DatasetSpec

@@ -8,6 +8,7 @@ from importlib.metadata import EntryPoint
 import numpy as np
 import pytest
 
+from bench_matrix import registry
 from bench_matrix.measure import metric_plugins
 from bench_matrix.measure.metric_plugins import Metric, MetricPluginError, load_metric, metric_names
 from bench_matrix.measure.metrics import DIRECTIONS, HEADLINE, SNR_LIMIT_DB, evaluate, non_finite_reason
@@ -175,10 +176,9 @@ def installed(monkeypatch: pytest.MonkeyPatch) -> None:
     plugins = {"logit_size": "MeanAbsLogit", "broken": "Broken", "undeclared": "Undeclared",
                "misnamed": "Misnamed", "no_directions": "NoDirections", "missing": "NotThere",
                "plain": "DIRECTIONS", "not_metric": "NotAMetric"}
-    group = metric_plugins.ENTRY_POINT_GROUP
+    group = metric_plugins.METRICS.name
     eps = [EntryPoint(name, f"{__name__}:{attr}", group) for name, attr in plugins.items()]
-    monkeypatch.setattr(metric_plugins, "entry_points",
-                        lambda group: [ep for ep in eps if ep.group == group])
+    monkeypatch.setattr(registry, "entry_points", lambda group: [ep for ep in eps if ep.group == group])
 
 
 def test_plugin_figures_are_stored_under_the_plugin_name(installed: None) -> None:
@@ -195,9 +195,9 @@ def test_plugin_figures_are_stored_under_the_plugin_name(installed: None) -> Non
     ("undeclared", r"'undeclared' returned 'surprise', which its `directions` does not declare"),
     ("misnamed", r"'misnamed' \(.*:Misnamed\) calls itself 'other'"),
     ("no_directions", r"'no_directions' .* declares directions \{'mean_abs': 'up'\}"),
-    ("missing", r"'missing' \(.*:NotThere\) failed to load: AttributeError"),
-    ("plain", r"'plain' .* failed to load: TypeError"),
-    ("not_metric", r"'not_metric' .* is not a bench_matrix.measure.metric_plugins.Metric"),
+    ("missing", r"'missing' \(.*:NotThere\) failed to import: AttributeError"),
+    ("plain", r"'plain' .* is not a bench_matrix.measure.metric_plugins.Metric subclass"),
+    ("not_metric", r"'not_metric' .* is not a bench_matrix.measure.metric_plugins.Metric subclass"),
     ("absent", r"no metric plugin named 'absent' is installed \(installed: broken, logit_size"),
 ])
 def test_a_broken_plugin_is_named(installed: None, name: str, message: str) -> None:

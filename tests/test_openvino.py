@@ -32,7 +32,7 @@ from convert_helper import request_for  # noqa: E402
 import torch  # noqa: E402
 
 from bench_matrix.backend import Session  # noqa: E402
-from bench_matrix.matrix.spec import StrategySpec  # noqa: E402
+from bench_matrix.strategy import StrategySpec  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
 from bench_matrix.sources.model_io import read_inputs  # noqa: E402
 from bench_matrix.tensors import Inputs, TensorSpec  # noqa: E402

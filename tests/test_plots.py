@@ -15,6 +15,7 @@ import pytest
 from bench_matrix.cell import Cell
 from bench_matrix.report.pareto import Box, pareto_optimal, place_labels, points, reference_sizes
 from bench_matrix.report.plots import file_stem, latency_figure, model_plots, pareto_figure
+from bench_matrix.report.sections import section_plots
 from bench_matrix.report.summary import ModelSummary, summarize
 from bench_matrix.store import CellRecord
 
@@ -188,7 +189,7 @@ def test_trajectories_of_driven_cells_are_returned(tmp_path: Path) -> None:
     driven = {**_metrics(1.0, 0.01), "closed_loop": {"oval": {"lock_step": lap}},
               "closed_loop_circuits": {"oval": circuit}}
     model = _summary("m", [(_cell("m", "pytorch"), _metrics(2.0, 0.01)), (_cell("m", "onnxruntime"), driven)])
-    plots = model_plots(model, {}, tmp_path)
+    plots = [*model_plots(model, {}, tmp_path), *section_plots(model, tmp_path)]
     assert [p.kind for p in plots] == ["pareto", "trajectory"]  # no samples: no latency distribution
     assert plots[1].path == tmp_path / "trajectory-m__onnxruntime__none__fp32__cpu.png"
     assert plots[1].path.is_file() and "onnxruntime none fp32" in plots[1].alt

@@ -9,10 +9,10 @@ ROOT = Path(__file__).resolve().parents[1] / "bench_matrix"
 MATRIX_CORE = ["matrix/schema.py", "matrix/extended.py", "matrix/spec.py", "matrix/load.py",  # hold the built-in
                "matrix/requirements.py", "matrix/require.py"]  # dataset's keys
 GENERIC = ["runner.py", "plan.py", "cell.py", "jobs/__init__.py", "jobs/measure.py", "plan_view.py",
-           "scenarios/base.py", "scenarios/latency.py",
+           "scenarios/base.py", "scenarios/latency.py", "verdict.py", "ranking.py", "registry.py",
            *(str(p.relative_to(ROOT)) for p in sorted(ROOT.glob("executors/*.py"))),
            *(str(p.relative_to(ROOT)) for p in sorted(ROOT.glob("store*.py"))),
-           *(f"report/{name}.py" for name in ("__init__", "html", "markdown", "terminal", "plots", "verdict",
+           *(f"report/{name}.py" for name in ("__init__", "html", "markdown", "terminal", "plots", "sections",
                                               "recommend", "judging", "verdict_view", "pareto_marks"))]
 SCENARIO = ("closed_loop", "closed loop", "closedloop", " laps", "simulator")
 WORKLOAD = ("driving", "circuit")
@@ -29,8 +29,8 @@ def test_generic_module_names_no_scenario(module: str) -> None:
 def test_scenarios_keep_their_matrix_sections_and_fields() -> None:
     from bench_matrix.matrix.extended import matrix_schema
     from bench_matrix.matrix.schema import SCHEMA
-    from bench_matrix.scenarios import selectable
+    from bench_matrix.registry import scenarios
 
-    for scenario in selectable():
+    for scenario in scenarios():
         assert scenario.name not in SCHEMA["properties"]
         assert matrix_schema()["properties"][scenario.name] == scenario.schema

@@ -21,7 +21,7 @@ from convert_helper import convert_with  # noqa: E402
 
 from bench_matrix import hardware  # noqa: E402
 from bench_matrix.backend import Backend, Session  # noqa: E402
-from bench_matrix.matrix.spec import StrategySpec  # noqa: E402
+from bench_matrix.strategy import StrategySpec  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
 from bench_matrix.sources.tensorflow import keras, tensorflow  # noqa: E402
 from bench_matrix.tensors import TensorSpec  # noqa: E402

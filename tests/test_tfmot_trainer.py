@@ -14,7 +14,7 @@ pytest.importorskip("tensorflow_model_optimization")
 
 import tiny_keras
 
-from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.strategy import StrategySpec
 from bench_matrix.sources import SourceModel
 from bench_matrix.sources.keras_qat import QAT_FORMAT, load_qat
 from bench_matrix.sources.tensorflow import keras, tensorflow

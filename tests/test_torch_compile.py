@@ -28,7 +28,7 @@ import torch  # noqa: E402
 
 from bench_matrix.errors import MatrixError  # noqa: E402
 from bench_matrix.matrix import load_matrix  # noqa: E402
-from bench_matrix.matrix.spec import StrategySpec  # noqa: E402
+from bench_matrix.strategy import StrategySpec  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
 from bench_matrix.tensors import TensorSpec  # noqa: E402
 from bench_matrix_backends._inductor import compiled_graphs  # noqa: E402

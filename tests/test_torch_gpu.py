@@ -28,7 +28,7 @@ import torch  # noqa: E402
 from bench_matrix import hardware  # noqa: E402
 from bench_matrix import registry  # noqa: E402
 from bench_matrix.backend import Backend  # noqa: E402
-from bench_matrix.matrix.spec import StrategySpec  # noqa: E402
+from bench_matrix.strategy import StrategySpec  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
 from bench_matrix_backends import torch_tensorrt as trt_backend  # noqa: E402
 from bench_matrix_backends._torch import TorchSession, place  # noqa: E402

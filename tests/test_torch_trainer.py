@@ -14,7 +14,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.strategy import StrategySpec
 from bench_matrix.sources import SourceModel
 from bench_matrix.strategies.base import FineTuned, FineTuneRequest
 from bench_matrix.strategies.torch_trainer import TorchTrainer

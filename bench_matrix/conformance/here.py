@@ -9,7 +9,7 @@ from typing import Any
 from bench_matrix.backend import Backend
 from bench_matrix.conformance.cases import Case, cases_of
 from bench_matrix.conformance.models import BUILDERS
-from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.strategy import StrategySpec
 from bench_matrix.registry import BackendLoadError, load_backend
 
 NotRun = list[tuple[Case, str]]  # cases this machine cannot run, each with why

@@ -21,7 +21,7 @@ from bench_matrix.conformance.concurrency import oversubscribed
 from bench_matrix.conformance.fresh import infos
 from bench_matrix.conformance.models import LARGE, THREADS, KitModel, build
 from bench_matrix.conformance.watch import watched
-from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.strategy import StrategySpec
 from bench_matrix.registry import BackendLoadError, load_backend
 from bench_matrix.tensors import Inputs, count, take
 

@@ -15,7 +15,7 @@ from bench_matrix.conformance.checks import bounds, check_close, check_kept, che
 from bench_matrix.conformance.here import NotRun, describe
 from bench_matrix.conformance.kit import Kit
 from bench_matrix.conformance.models import BATCHES, LARGE, MODELS, THREADS
-from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.strategy import StrategySpec
 from bench_matrix.tensors import take
 
 AXES = ("frameworks", "strategies", "precisions", "targets")

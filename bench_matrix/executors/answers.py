@@ -15,7 +15,7 @@ from bench_matrix.matrix.requirements import Requirements
 from bench_matrix.measure.schedule import LATENCY, RoundsSettings, Timed, spread
 from bench_matrix.measurement import Measurement
 from bench_matrix.ranking import Ranked, compare, rank, speedups
-from bench_matrix.scenarios import selectable
+from bench_matrix.registry import scenarios
 from bench_matrix.scenarios.latency import LIMITS
 from bench_matrix.scenarios.timed import SAMPLED, THROUGHPUT, figures
 from bench_matrix.verdict import PASS, UNCERTAIN, judge
@@ -84,8 +84,8 @@ class OpenAnswers:
 
 def known(requirements: Requirements) -> Requirements:
     """The requirements the rounds can judge: every one but a scenario's (its scenarios run after them)."""
-    scenarios = {scenario.name for scenario in selectable()}
-    limits = tuple(limit for limit in requirements.limits if limit.key.partition(".")[0] not in scenarios)
+    names = {scenario.name for scenario in scenarios()}
+    limits = tuple(limit for limit in requirements.limits if limit.key.partition(".")[0] not in names)
     return Requirements(limits, requirements.objective, requirements.data)
 
 

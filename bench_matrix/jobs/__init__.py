@@ -18,9 +18,10 @@ from bench_matrix.jobs.results import (
     Probe,
     Reference,
 )
-from bench_matrix.matrix.expand import TrainingKey, VerdictKey
+from bench_matrix.cell import TrainingKey, VerdictKey
 from bench_matrix.matrix.requirements import Requirements
-from bench_matrix.matrix.spec import DatasetSpec, ModelSpec, Settings, StrategySpec
+from bench_matrix.matrix.spec import DatasetSpec, ModelSpec, Settings
+from bench_matrix.strategy import StrategySpec
 from bench_matrix.sources import SourceModel
 from bench_matrix.tensors import TensorSpec
 from bench_matrix.workspace import Workspace

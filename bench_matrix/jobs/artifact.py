@@ -17,7 +17,8 @@ from bench_matrix.phases import phase
 from bench_matrix.jobs import ConvertJob
 from bench_matrix.jobs.keys import artifact_key, calibrates, intermediates_key, params_key
 from bench_matrix.jobs.results import Converted, PreparedData
-from bench_matrix.matrix.spec import Settings, StrategySpec
+from bench_matrix.matrix.spec import Settings
+from bench_matrix.strategy import StrategySpec
 from bench_matrix.registry import load_backend
 from bench_matrix.sources import SourceModel
 from bench_matrix.tensors import Inputs, bind, count, take

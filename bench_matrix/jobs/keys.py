@@ -7,7 +7,8 @@ from typing import Any
 from bench_matrix import hardware
 from bench_matrix.backend import Backend
 from bench_matrix.matrix.schema import STRATEGY_KINDS
-from bench_matrix.matrix.spec import ModelSpec, Settings, StrategySpec
+from bench_matrix.matrix.spec import ModelSpec, Settings
+from bench_matrix.strategy import StrategySpec
 from bench_matrix.sources import SourceModel
 from bench_matrix.tensors import TensorSpec, specs_to_list
 from bench_matrix.workspace import digest, file_sha256

@@ -10,8 +10,8 @@ from typing import Any
 from bench_matrix.backend import Backend
 from bench_matrix.jobs import ProbeJob
 from bench_matrix.jobs.results import Probe
-from bench_matrix.matrix.expand import TrainingKey, Verdict
-from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.cell import TrainingKey, Verdict
+from bench_matrix.strategy import StrategySpec
 from bench_matrix.registry import BackendLoadError, load_backend
 from bench_matrix.sources.forward_call import Parameter
 from bench_matrix.sources.model_io import FileInputs, read_file

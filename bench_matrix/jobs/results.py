@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from bench_matrix.matrix.expand import TrainingKey, Verdict, VerdictKey
+from bench_matrix.cell import TrainingKey, Verdict, VerdictKey
 from bench_matrix.matrix.spec import Preprocess
 from bench_matrix.measurement import Measurement
 from bench_matrix.sources import SourceModel

@@ -8,27 +8,11 @@ import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-from bench_matrix.cell import Cell, CellPlan
-from bench_matrix.matrix.schema import QAT_KINDS, STRATEGY_KINDS
-from bench_matrix.matrix.spec import Matrix, StrategySpec
-
-# (backend, framework, conversion kind, precision, target, source format, conversion options as JSON, training
-# key as JSON or ""): everything a backend needs to judge a combination before any model is loaded (after a
-# fine-tuning, the format converted is the trainer's output, which the probe substitutes)
-VerdictKey = tuple[str, str, str, str, str, str, str, str]
-# (framework, source format, training steps as JSON, task): what a trainer needs to judge a fine-tuning strategy
-TrainingKey = tuple[str, str, str, str]
-
-
-@dataclass(frozen=True)
-class Verdict:
-    """A backend's answer for one combination: not valid (why), or valid but not runnable here (why)."""
-
-    invalid: str | None = None
-    skip: str | None = None
-    by: str | None = None  # for a fine-tuning strategy: the trainer that will apply it
-    format: str | None = None  # ... and the format of the model it writes
-
+from bench_matrix.cell import Cell, CellPlan, TrainingKey, Verdict, VerdictKey
+from bench_matrix.matrix.schema import STRATEGY_KINDS
+from bench_matrix.strategy import QAT_KINDS
+from bench_matrix.matrix.spec import Matrix
+from bench_matrix.strategy import StrategySpec
 
 @dataclass(frozen=True)
 class Expansion:

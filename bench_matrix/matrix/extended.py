@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from bench_matrix.matrix.requirements import with_scenarios
 from bench_matrix.matrix.schema import PRECISIONS, SCHEMA
-from bench_matrix.scenarios import selectable
+from bench_matrix.registry import scenarios
 
 if TYPE_CHECKING:
     from bench_matrix.registry import Vocabulary
@@ -47,7 +47,7 @@ def installed_schema(vocabulary: "Vocabulary", metrics: Sequence[str] = ()) -> d
 def matrix_schema() -> dict[str, Any]:
     """SCHEMA (the core) with each selectable scenario's section: the built-in matrix format."""
     schema = copy.deepcopy(SCHEMA)
-    schema["properties"].update({s.name: copy.deepcopy(s.schema) for s in selectable()})
+    schema["properties"].update({s.name: copy.deepcopy(s.schema) for s in scenarios()})
     model = schema["properties"]["models"]["items"]["properties"]
     for holder in (schema["properties"], model):
         holder["requirements"] = with_scenarios(holder["requirements"])

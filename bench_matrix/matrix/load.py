@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import stat
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -18,28 +19,29 @@ from bench_matrix.matrix.schema import (
 from bench_matrix.matrix.extended import axis_values, installed_schema
 from bench_matrix.matrix.require import declared
 from bench_matrix.matrix.retired import current
+from bench_matrix.matrix.spec import (DEFAULT_LAYOUT, MODEL_SUFFIXES, DatasetSpec, Matrix, ModelSpec,
+                                      Selector, Settings, TrainingSpec, file_kind)
 from bench_matrix.matrix.validate import StrictValidator, describe
-from bench_matrix.matrix.spec import (
-    DEFAULT_LAYOUT,
-    MODEL_SUFFIXES,
-    DatasetSpec,
-    Matrix,
-    ModelSpec,
-    Selector,
-    Settings,
-    StrategySpec,
-    TrainingSpec,
-    file_kind,
-)
 from bench_matrix.matrix.yamlpos import Located, load_with_lines, suggest
-from bench_matrix.scenarios import selectable
-from bench_matrix.scenarios.base import Loading
+from bench_matrix.registry import scenarios
+from bench_matrix.strategy import StrategySpec
 from bench_matrix.workspace import not_regular
 
 if TYPE_CHECKING:
     from bench_matrix.registry import Vocabulary
 
 __all__ = ["load_matrix", "selector", "suggest"]
+
+
+@dataclass(frozen=True)
+class Loading:
+    """What a scenario's section may check itself against while the matrix loads."""
+
+    models: tuple[ModelSpec, ...]
+    dataset: DatasetSpec
+    known: dict[str, list[str] | None]  # cell key -> its known values (None: any)
+    report: Located
+
 
 
 def load_matrix(path: str | Path, backends: list[str] | None = None) -> Matrix:
@@ -103,13 +105,13 @@ def _build(path: Path, data: dict[str, Any], lines: dict, report: Located, backe
                                    for i, s in enumerate(data.get(section, [])))
     _check_metrics(data.get("metrics", []), report)
     loading = Loading(models, dataset, known, report)
-    scenarios = {s.name: s.read(data[s.name], loading) for s in selectable() if s.name in data}
+    sections = {s.name: s.read(data[s.name], loading) for s in scenarios() if s.name in data}
     options = {name: dict(given) for name, given in data.get("backend_options", {}).items()}
     settings = current(data.get("settings", {}), report)
     return Matrix(path=path, name=data.get("name", path.stem), models=models, dataset=dataset,
                   strategies=strategies, axes=axes, include=selectors["include"],
                   exclude=selectors["exclude"], settings=Settings(**settings),
-                  backend_options=options, metrics=tuple(data.get("metrics", ())), scenarios=scenarios,
+                  backend_options=options, metrics=tuple(data.get("metrics", ())), scenarios=sections,
                   requirements=declared(data, report), lines=lines, warnings=tuple(report.warnings))
 
 

@@ -13,7 +13,7 @@ from bench_matrix.errors import MatrixError, UserError
 from bench_matrix.matrix.requirements import BOUND_KEYS, Declared, Requirements, bound_problem
 from bench_matrix.matrix.validate import StrictValidator, describe
 from bench_matrix.matrix.yamlpos import Located, load_with_lines
-from bench_matrix.scenarios import selectable
+from bench_matrix.registry import scenarios
 
 
 def declared(data: dict[str, Any], report: Located) -> Declared:
@@ -25,7 +25,7 @@ def declared(data: dict[str, Any], report: Located) -> Declared:
     for at, given in found.items():
         for key, problem in bound_problem(given):
             report.add(at + ("requirements", key), problem)
-        for name in [s.name for s in selectable() if s.name in given and s.name not in data]:
+        for name in [s.name for s in scenarios() if s.name in given and s.name not in data]:
             report.add(at + ("requirements", name), f"this matrix has no '{name}' section, so no cell has "
                                                     f"these figures; add the section or drop these "
                                                     f"requirements")
@@ -76,9 +76,9 @@ def parse_require(texts: Sequence[str]) -> dict[str, Any]:
 
 def _put(data: dict[str, Any], key: str, value: Any) -> None:
     """KEY's value into `data`: a scenario's NAME.KEY and a bound's METRIC.min nested, other keys as given."""
-    scenarios = {s.name for s in selectable()}
+    names = {s.name for s in scenarios()}
     head, _, rest = key.partition(".")
-    if head in scenarios and rest:
+    if head in names and rest:
         data.setdefault(head, {})[rest] = value
     elif key.rpartition(".")[2] in BOUND_KEYS and "." in key:
         figure, _, bound = key.rpartition(".")

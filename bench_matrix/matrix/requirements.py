@@ -49,10 +49,10 @@ SCHEMA: dict[str, Any] = {
 
 def with_scenarios(fragment: dict[str, Any]) -> dict[str, Any]:
     """The fragment with each selectable scenario's requirement keys, under its name."""
-    from bench_matrix.scenarios import selectable
+    from bench_matrix.registry import scenarios
 
     out = copy.deepcopy(fragment)
-    for scenario in selectable():
+    for scenario in scenarios():
         if scenario.requirements:
             keys = {key: {"type": "number", "minimum": 0, "maximum": 1e12,
                           "description": f"{what}, {bound}imum"}
@@ -163,7 +163,7 @@ def _drop(value: Any) -> Limit:
 
 def _scenario_bounds() -> dict[str, dict[str, str]]:
     """Per selectable scenario with requirement keys: key -> "min" or "max"."""
-    from bench_matrix.scenarios import selectable
+    from bench_matrix.registry import scenarios
 
-    return {s.name: {key: bound for key, (bound, _) in s.requirements.items()} for s in selectable()
+    return {s.name: {key: bound for key, (bound, _) in s.requirements.items()} for s in scenarios()
             if s.requirements}

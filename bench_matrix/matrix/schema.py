@@ -17,7 +17,6 @@ BUILTIN_FRAMEWORKS = ("pytorch", "tensorflow")  # each built-in model exists in 
 BUILTIN_DATASETS = tuple(builtin_data.TASKS)
 DATASET_KINDS = ("builtin", "npz", "folder", "images", "synthetic")
 CELL_KEYS = ("model", "framework", "backend", "strategy", "precision", "target")
-QAT_KINDS = ("qat", "cqat", "pqat", "pcqat")  # training kinds whose result carries learned int8 ranges
 
 # Upper limits no real matrix reaches; they keep every later computation (timers, allocations, seeds) sane.
 MAX_ITERATIONS = 1_000_000

@@ -8,6 +8,7 @@ from typing import Any
 
 from bench_matrix.matrix.requirements import Declared
 from bench_matrix.measurement import TASKS
+from bench_matrix.strategy import StrategySpec
 from bench_matrix.tensors import TensorSpec
 from bench_matrix.workload.driving.defaults import DEFAULT_DATASET
 
@@ -107,31 +108,6 @@ class DatasetSpec:
     preprocess: Preprocess = field(default_factory=Preprocess)
     labels: LabelSpec = field(default_factory=LabelSpec)
     split: SplitSpec = field(default_factory=SplitSpec)
-
-
-@dataclass(frozen=True)
-class StrategySpec:
-    """A strategy: one kind with its options, or a combination of named steps."""
-
-    name: str
-    kind: str | None
-    options: dict[str, Any] = field(default_factory=dict)
-    steps: tuple["StrategySpec", ...] = ()
-
-    def kinds(self) -> tuple[str, ...]:
-        """Kinds applied in order (a single kind, or each step's kinds)."""
-        if self.steps:
-            return tuple(k for step in self.steps for k in step.kinds())
-        return (self.kind,) if self.kind else ()
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "kind": self.kind, "options": dict(sorted(self.options.items())),
-                "steps": [s.to_dict() for s in self.steps]}
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "StrategySpec":
-        return cls(name=data["name"], kind=data["kind"], options=dict(data.get("options") or {}),
-                   steps=tuple(cls.from_dict(s) for s in data.get("steps") or ()))
 
 
 @dataclass(frozen=True)

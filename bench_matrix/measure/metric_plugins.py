@@ -4,18 +4,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from importlib.metadata import entry_points
 
 import numpy as np
 
 from bench_matrix.measurement import TASKS
+from bench_matrix.registry import Group, PluginError
 
-ENTRY_POINT_GROUP = "bench_matrix.metrics"
-__all__ = ["ENTRY_POINT_GROUP", "Metric", "MetricPluginError", "load_metric", "metric_names",
-           "plugin_metrics"]
+__all__ = ["METRICS", "Metric", "MetricPluginError", "load_metric", "metric_names", "plugin_metrics"]
 
 
-class MetricPluginError(Exception):
+class MetricPluginError(PluginError):
     """A metric plugin could not be loaded, does not fit the task, or failed computing its figures."""
 
 
@@ -32,31 +30,24 @@ class Metric:
         raise NotImplementedError
 
 
+METRICS = Group("bench_matrix.metrics", "metric plugin", Metric, MetricPluginError)
+
+
 def metric_names() -> list[str]:
     """Names of the installed metric plugins, sorted."""
-    return sorted({ep.name for ep in entry_points(group=ENTRY_POINT_GROUP)})
+    return METRICS.names()
 
 
 def load_metric(name: str) -> Metric:
     """Import, instantiate and check one registered metric plugin."""
-    eps = [ep for ep in entry_points(group=ENTRY_POINT_GROUP) if ep.name == name]
-    if not eps:
-        installed = ", ".join(metric_names()) or "none"
-        raise MetricPluginError(f"no metric plugin named {name!r} is installed (installed: {installed})")
-    where = f"metric plugin {name!r} ({eps[0].value})"
-    try:
-        metric = eps[0].load()()
-    except Exception as exc:  # a broken plugin must not take the tool down
-        raise MetricPluginError(f"{where} failed to load: {type(exc).__name__}: {exc}") from exc
+    metric = METRICS.load(name)
     problem = _declaration_problem(metric, name)
     if problem:
-        raise MetricPluginError(f"{where} {problem}")
+        raise MetricPluginError(f"metric plugin {name!r} ({METRICS.entry(name).value}) {problem}")
     return metric
 
 
-def _declaration_problem(metric: object, name: str) -> str | None:
-    if not isinstance(metric, Metric):
-        return "is not a bench_matrix.measure.metric_plugins.Metric"
+def _declaration_problem(metric: Metric, name: str) -> str | None:
     if metric.name != name:
         return f"calls itself {metric.name!r}; its `name` must be the entry-point name"
     unknown = [t for t in metric.tasks if t not in TASKS]

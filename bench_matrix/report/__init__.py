@@ -153,9 +153,11 @@ def _pages(loaded: Loaded, fmt: str, out: Path, console: Console) -> list[Path]:
     from bench_matrix.report.html import write_html
     from bench_matrix.report.markdown import write_pages
     from bench_matrix.report.plots import model_plots
+    from bench_matrix.report.sections import section_plots
 
     out.mkdir(parents=True, exist_ok=True)
-    plots = {m.name: model_plots(m, loaded.samples, out / "plots") for m in loaded.report.models}
+    plots = {m.name: [*model_plots(m, loaded.samples, out / "plots"), *section_plots(m, out / "plots")]
+             for m in loaded.report.models}
     if fmt == "table":
         from bench_matrix.report.terminal import print_report
         print_report(loaded.report, console)

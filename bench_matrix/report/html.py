@@ -24,7 +24,7 @@ from bench_matrix.report.html_parts import SCRIPT, STYLE, Html, esc, figure, tab
 from bench_matrix.report.plots import Plot
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
 from bench_matrix.report.verdict_view import HEADERS, INTRO, NUMERIC, closest_lines, requirement_lines, rows
-from bench_matrix.scenarios import selectable
+from bench_matrix.report.sections import sections
 
 TITLE = "bench-matrix report"
 
@@ -86,7 +86,7 @@ def _model_section(index: int, model: ModelSummary, plots: Sequence[Plot]) -> st
              *_notes(model), "<h3>Results</h3>", _results(model)]
     if plots:
         parts += ["<h3>Plots</h3>", *(figure(plot) for plot in plots)]
-    parts += [*(part for s in selectable() for part in s.html(model)), *_skipped(model), *_failed(model),
+    parts += [*(part for s in sections() for part in s.html(model)), *_skipped(model), *_failed(model),
               f"<details><summary>Environment of {esc(model.name)}</summary>{_environment(model.environment)}"
               "</details>", "</section>"]
     return "\n".join(parts)

@@ -26,7 +26,7 @@ from bench_matrix.report.text import (
 from bench_matrix.report.plots import Plot
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
 from bench_matrix.report.verdict_view import HEADERS, INTRO, NUMERIC, closest_lines, requirement_lines, rows
-from bench_matrix.scenarios import selectable
+from bench_matrix.report.sections import sections
 from bench_matrix.store import CellRecord
 
 _COLUMN_NOTES = ("Latency is measured one sample at a time after warm-up runs; p50/p90/p99 are percentiles "
@@ -102,7 +102,7 @@ def model_page(model: ModelSummary, plots: Sequence[Plot], out_dir: Path) -> str
     else:
         lines += ["No cell of this model produced a result.", ""]
     lines += _plots(plots, out_dir)
-    lines += [line for s in selectable() for line in s.markdown(model, _table, _escape)]
+    lines += [line for s in sections() for line in s.markdown(model, _table, _escape)]
     lines += _skipped(model)
     if model.failed:
         lines += [f"## Failed ({len(model.failed)})", ""]

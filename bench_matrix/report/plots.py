@@ -19,7 +19,6 @@ from bench_matrix.report import pareto_marks
 from bench_matrix.report.columns import APPROXIMATE, cell_names, sig
 from bench_matrix.report.pareto import Box, Point, accuracy_metric, place_labels, points, reference_sizes
 from bench_matrix.report.summary import ModelSummary, disturbed_phases, wide_phases
-from bench_matrix.scenarios import selectable
 from bench_matrix.store import CellRecord
 
 DPI = 110
@@ -61,14 +60,13 @@ class Style:
 
 def model_plots(model: ModelSummary, samples: Mapping[int, np.ndarray], folder: Path) -> list[Plot]:
     """Draw the model's plots that have data into `folder` (created when needed): the Pareto chart, the
-    latency distributions (cells with raw `samples`, by record id) and each scenario's plots."""
+    latency distributions (cells with raw `samples`, by record id)."""
     if not model.rows:
         return []
     folder.mkdir(parents=True, exist_ok=True)
     stem = file_stem(model.name)
     found = [pareto_plot(model, folder / f"pareto-{stem}.png"),
              latency_plot(model, samples, folder / f"latency-{stem}.png")]
-    found += [plot for scenario in selectable() for plot in scenario.plots(model, folder)]
     return [plot for plot in found if plot is not None]
 
 

@@ -38,7 +38,7 @@ from bench_matrix.report.verdict_view import (
     requirement_lines,
     rows,
 )
-from bench_matrix.scenarios import selectable
+from bench_matrix.report.sections import sections
 from bench_matrix.store import CellRecord
 
 # Ways to lay out the results columns, tried in order until every table fits the console.
@@ -103,8 +103,8 @@ def _print_model(model: ModelSummary, console: Console) -> None:
         console.print(Text(f"Wide (~): {line}", style="yellow"))
     if model.rows:
         console.print(*results_tables(model, console))
-    for scenario in selectable():
-        scenario.terminal(model, console)
+    for section in sections():
+        section.terminal(model, console)
     if model.skipped:
         console.print(_skipped_table(model))
     if model.failed:

@@ -4,19 +4,16 @@ measure job; others are selected per cell by their own top-level matrix section.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
 if TYPE_CHECKING:
     from bench_matrix.backend import Backend, Session
     from bench_matrix.cell import Planned
     from bench_matrix.jobs import MeasureJob
-    from bench_matrix.matrix.spec import DatasetSpec, Matrix, ModelSpec
-    from bench_matrix.matrix.yamlpos import Located
+    from bench_matrix.matrix.load import Loading
+    from bench_matrix.matrix.spec import Matrix
     from bench_matrix.measure.gpu import GpuMemory
     from bench_matrix.measurement import Measurement
-    from bench_matrix.report.plots import Plot
-    from bench_matrix.report.summary import ModelSummary
 
 
 @dataclass(frozen=True)
@@ -40,25 +37,16 @@ class Outcome:
     samples: dict[str, bytes] = field(default_factory=dict)
 
 
-@dataclass(frozen=True)
-class Loading:
-    """What a scenario's section may check itself against while the matrix loads."""
-
-    models: tuple[ModelSpec, ...]
-    dataset: DatasetSpec
-    known: dict[str, list[str] | None]  # cell key -> its known values (None: any)
-    report: Located
-
-
 class Scenario:
-    """A scenario selectable from the matrix: its section's schema, typed reading and per-cell plan, and its
-    report section (from stored records only)."""
+    """A scenario selectable from the matrix: its section's schema, typed reading and per-cell plan, the
+    figures its requirements bound, and where its report section is (the report's Section protocol)."""
 
     name: ClassVar[str]  # the matrix section's key, the Planned's name and its record fields' prefix
     title: ClassVar[str]  # the plan view's column
     schema: ClassVar[dict[str, Any]]  # JSON Schema of the section
     # requirement keys it adds under its name in `requirements`: key -> ("min" or "max", what the figure is)
     requirements: ClassVar[dict[str, tuple[str, str]]] = {}
+    section: ClassVar[str | None] = None  # "module:NAME" of its report Section (report/sections.py)
 
     def read(self, data: dict[str, Any], loading: Loading) -> Any:
         """The typed section from its schema-valid data; problems go to `loading.report`."""
@@ -71,18 +59,6 @@ class Scenario:
     def figure(self, key: str, metrics: Measurement) -> float | None:
         """The stored figure requirement `key` bounds, or None when the record has none."""
         return None
-
-    def markdown(self, model: ModelSummary, table: Any, escape: Any) -> list[str]:
-        return []
-
-    def html(self, model: ModelSummary) -> list[str]:
-        return []
-
-    def terminal(self, model: ModelSummary, console: Any) -> None:
-        return None
-
-    def plots(self, model: ModelSummary, folder: Path) -> list[Plot]:
-        return []
 
 
 def fields(name: str, others: dict[str, Any]) -> dict[str, Any]:

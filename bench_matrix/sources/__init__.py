@@ -7,10 +7,18 @@ from pathlib import Path
 from typing import Any
 
 from bench_matrix.errors import UserError
+from bench_matrix.named import resolve
 from bench_matrix.tensors import TensorSpec, specs_from_list, specs_to_list
 
 # keras_qat: a quantisation-aware-trained Keras model, written by the tfmot trainer (loaded in tfmot's scope)
 FORMATS = ("torchscript", "torch_export", "state_dict", "onnx", "keras", "h5", "saved_model", "keras_qat")
+
+
+# Each framework's loader, imported when a model is loaded (each imports its framework); our tfmot trainer's
+# output (format keras_qat, in the workspace cache) has its own.
+LOADERS = {"pytorch": "bench_matrix.sources.pytorch:load_module",
+           "tensorflow": "bench_matrix.sources.tensorflow:load_keras"}
+QAT_LOADER = "bench_matrix.sources.keras_qat:load_source"
 
 
 class ModelFileError(UserError, ValueError):
@@ -62,21 +70,12 @@ class SourceModel:
             raise ModelFileError(f"{self.label}: cannot be read ({exc.strerror}: {exc.filename})") from None
 
     def _load(self) -> Any:
-        if self.framework == "pytorch":
-            from bench_matrix.sources.pytorch import load_module
-
-            return load_module(self)
-        if self.format == "keras_qat":  # our own trainer's output, in the workspace cache
-            from bench_matrix.sources.keras_qat import load_qat
-
-            return load_qat(self.path)
-        if self.framework == "tensorflow":
-            from bench_matrix.sources.tensorflow import load_keras
-
-            return load_keras(self)
         if self.framework == "onnx":
             return self.path
-        raise ValueError(f"no loader for framework {self.framework!r}")
+        loader = QAT_LOADER if self.format == "keras_qat" else LOADERS.get(self.framework)
+        if loader is None:
+            raise ValueError(f"no loader for framework {self.framework!r}")
+        return resolve(loader)(self)
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)

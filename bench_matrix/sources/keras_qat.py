@@ -4,9 +4,12 @@ tensorflow-model-optimization the way bench-matrix uses it, and loading such a m
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from bench_matrix.sources.tensorflow import keras, tensorflow
+
+if TYPE_CHECKING:
+    from bench_matrix.sources import SourceModel
 
 # A tfmot QAT model is saved as a Keras SavedModel directory: .keras cannot restore QuantizeWrapper
 # variables, and .h5 cannot restore cluster-preserving quantizers (they create one variable per centroid when
@@ -34,6 +37,11 @@ def qat_custom_objects() -> dict[str, Any]:
 
     return {name: obj for module in (cp, pp) for name, obj in vars(module).items()
             if isinstance(obj, type) and obj.__module__ == module.__name__}
+
+
+def load_source(source: SourceModel) -> Any:
+    """A fresh Keras model from our trainer's QAT model (`source`, format keras_qat)."""
+    return load_qat(source.path)
 
 
 def load_qat(path: str | Path) -> Any:

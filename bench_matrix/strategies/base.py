@@ -10,8 +10,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from bench_matrix.matrix.schema import QAT_KINDS
-from bench_matrix.matrix.spec import StrategySpec
+from bench_matrix.strategy import QAT_KINDS
+from bench_matrix.strategy import StrategySpec
 from bench_matrix.sources import SourceModel
 from bench_matrix.tensors import Inputs, TensorSpec
 

@@ -2,33 +2,21 @@
 
 from __future__ import annotations
 
-from importlib.metadata import entry_points
-
+from bench_matrix.registry import Group, PluginError
 from bench_matrix.strategies.base import Trainer
 
-ENTRY_POINT_GROUP = "bench_matrix.trainers"
+
+class TrainerLoadError(PluginError):
+    """A registered trainer could not be imported or created, or is not a Trainer."""
 
 
-class TrainerLoadError(Exception):
-    """A registered trainer could not be imported or is not a Trainer."""
+TRAINERS = Group("bench_matrix.trainers", "trainer", Trainer, TrainerLoadError)
 
 
 def trainer_names() -> list[str]:
-    return sorted({ep.name for ep in entry_points(group=ENTRY_POINT_GROUP)})
+    return TRAINERS.names()
 
 
 def load_trainer(name: str) -> Trainer:
     """Import and instantiate one registered trainer."""
-    eps = [ep for ep in entry_points(group=ENTRY_POINT_GROUP) if ep.name == name]
-    if not eps:
-        raise TrainerLoadError(f"no trainer named {name!r} is installed (installed: "
-                               f"{', '.join(trainer_names())})")
-    try:
-        cls = eps[0].load()
-        trainer = cls()
-    except Exception as exc:  # a broken plugin must not take the tool down
-        raise TrainerLoadError(f"trainer {name!r} ({eps[0].value}) failed to load: "
-                               f"{type(exc).__name__}: {exc}") from exc
-    if not isinstance(trainer, Trainer):
-        raise TrainerLoadError(f"trainer {name!r} ({eps[0].value}) is not a bench_matrix Trainer")
-    return trainer
+    return TRAINERS.load(name)

@@ -4,20 +4,18 @@ simulator with their loaded session (docs/closed-loop.md)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bench_matrix.matrix.spec import LabelSpec, Matrix
 from bench_matrix.cell import Planned
-from bench_matrix.scenarios.base import Loading, Scenario
+from bench_matrix.matrix.load import Loading
+from bench_matrix.scenarios.base import Scenario
 from bench_matrix.scenarios.closed_loop.section import closed_loop, drive_problem
 from bench_matrix.scenarios.closed_loop.spec import SCHEMA, ClosedLoopSpec
 
 if TYPE_CHECKING:
     from bench_matrix.cell import Cell
     from bench_matrix.measurement import Measurement
-    from bench_matrix.report.plots import Plot
-    from bench_matrix.report.summary import ModelSummary
 
 
 @dataclass(frozen=True)
@@ -56,6 +54,7 @@ class ClosedLoop(Scenario):
     requirements = {"completed_pct": ("min", "completed % of the cell's worst lap"),
                     "deviation_mae_m": ("max", "mean deviation from the reference line of the worst lap, m"),
                     "brain_hz": ("min", "achieved brain rate of the slowest lap, Hz")}
+    section = "bench_matrix.scenarios.closed_loop.trajectories:SECTION"
 
     def read(self, data: dict[str, Any], loading: Loading) -> ClosedLoopSpec:
         return closed_loop(data, loading)
@@ -78,23 +77,3 @@ class ClosedLoop(Scenario):
         if not values or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
             return None
         return float(max(values) if self.requirements[key][0] == "max" else min(values))
-
-    def markdown(self, model: ModelSummary, table: Any, escape: Any) -> list[str]:
-        from bench_matrix.scenarios.closed_loop import report
-
-        return report.markdown_lines(model, table, escape)
-
-    def html(self, model: ModelSummary) -> list[str]:
-        from bench_matrix.scenarios.closed_loop import report
-
-        return report.html_parts(model)
-
-    def terminal(self, model: ModelSummary, console: Any) -> None:
-        from bench_matrix.scenarios.closed_loop import report
-
-        report.print_terminal(model, console)
-
-    def plots(self, model: ModelSummary, folder: Path) -> list[Plot]:
-        from bench_matrix.scenarios.closed_loop.trajectories import trajectory_plots
-
-        return trajectory_plots(model, folder)

@@ -5,10 +5,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from bench_matrix.matrix.load import selector
+from bench_matrix.matrix.load import Loading, selector
 from bench_matrix.matrix.spec import DatasetSpec, ModelSpec
 from bench_matrix.matrix.yamlpos import Located, suggest
-from bench_matrix.scenarios.base import Loading
 from bench_matrix.scenarios.closed_loop.spec import CircuitSpec, ClosedLoopSpec
 from bench_matrix.workload.driving.circuits import BUILTIN_CIRCUITS, user_circuit
 

@@ -9,8 +9,10 @@ from typing import Any
 import numpy as np
 
 from bench_matrix.report.plots import Plot
+from bench_matrix.report.sections import Section
 from bench_matrix.report.summary import ModelSummary
-from bench_matrix.scenarios.closed_loop.report import MODE_NAMES, driven_records, plot_name
+from bench_matrix.scenarios.closed_loop.report import (MODE_NAMES, driven_records, html_parts, markdown_lines,
+                                                      plot_name, print_terminal)
 from bench_matrix.store import CellRecord
 
 PANEL_INCHES = 4.0
@@ -85,3 +87,6 @@ def _road(axes: Any, x: np.ndarray, y: np.ndarray, half_width: float) -> None:
     vertices = np.concatenate([left, left[:1], right, right[:1]])
     codes = ([Outline.MOVETO] + [Outline.LINETO] * (len(x) - 1) + [Outline.CLOSEPOLY]) * 2
     axes.add_patch(PathPatch(Outline(vertices, codes), facecolor=ROAD, edgecolor="none"))
+
+
+SECTION = Section(markdown_lines, html_parts, print_terminal, trajectory_plots)  # the closed loop's section

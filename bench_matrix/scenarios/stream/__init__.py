@@ -4,11 +4,13 @@ with their loaded session; the achieved rate, deadline misses, drops and jitter 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from bench_matrix.cell import Planned
-from bench_matrix.scenarios.base import Loading, Scenario
+from bench_matrix.matrix.load import Loading
+from bench_matrix.scenarios.base import Scenario
 from bench_matrix.scenarios.stream.section import stream
 from bench_matrix.scenarios.stream.spec import REQUIREMENTS, SCHEMA, StreamSpec
 
@@ -16,7 +18,6 @@ if TYPE_CHECKING:
     from bench_matrix.cell import Cell
     from bench_matrix.matrix.spec import Matrix
     from bench_matrix.measurement import Measurement
-    from bench_matrix.report.summary import ModelSummary
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,7 @@ class Stream(Scenario):
     title = "stream"
     schema = SCHEMA
     requirements = REQUIREMENTS
+    section = "bench_matrix.scenarios.stream.report:SECTION"
 
     def read(self, data: dict[str, Any], loading: Loading) -> StreamSpec:
         return stream(data, loading)
@@ -56,23 +58,7 @@ class Stream(Scenario):
     def figure(self, key: str, metrics: Measurement) -> float | None:
         """The stream's stored figure `key`; None when the cell has none (it did not stream, or too few
         calls completed)."""
-        from bench_matrix.report.summary import number
-
         found = metrics.others.get("stream")
-        return number(found.get(key)) if isinstance(found, dict) else None
-
-    def markdown(self, model: ModelSummary, table: Any, escape: Any) -> list[str]:
-        return _report().markdown_lines(model, table, escape)
-
-    def html(self, model: ModelSummary) -> list[str]:
-        return _report().html_parts(model)
-
-    def terminal(self, model: ModelSummary, console: Any) -> None:
-        _report().print_terminal(model, console)
-
-
-def _report() -> Any:
-    """The report module, imported when a report is made (it needs the store and the report's helpers)."""
-    from bench_matrix.scenarios.stream import report
-
-    return report
+        value = found.get(key) if isinstance(found, dict) else None
+        real = isinstance(value, int | float) and not isinstance(value, bool)
+        return float(value) if real and math.isfinite(value) else None

@@ -8,6 +8,7 @@ from typing import Any
 
 from bench_matrix.report.columns import DASH, Column, fixed, sig
 from bench_matrix.report.html_parts import esc, table
+from bench_matrix.report.sections import Section
 from bench_matrix.report.summary import ModelSummary, Row, number
 
 INTRO = ("Each cell's own artifact served frames arriving on a fixed clock (docs/stream.md defines every "
@@ -102,3 +103,7 @@ def print_terminal(model: ModelSummary, console: Any) -> None:
     for cells in rendered:
         table.add_row(*cells)
     console.print(table)
+
+
+
+SECTION = Section(markdown_lines, html_parts, print_terminal)  # the stream scenario's section of a report

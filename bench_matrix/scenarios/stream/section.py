@@ -5,8 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from bench_matrix.matrix.load import selector
-from bench_matrix.scenarios.base import Loading
+from bench_matrix.matrix.load import Loading, selector
 from bench_matrix.scenarios.stream.spec import MAX_FRAMES, MIN_FRAMES, StreamSpec
 
 AT = ("stream",)
