@@ -77,13 +77,13 @@ def _method(row: Row) -> str:
     return row.record.cell.label + (" (baseline)" if row.is_baseline else "")
 
 
-APPROXIMATE = " ~"  # after a figure of a timed phase that was disturbed or too wide: see docs/metrics.md
+APPROXIMATE = " ~"  # after a timed figure: disturbed, or missed the ci_target asked for (docs/metrics.md §5)
 EMULATED = " (emu)"  # after a timing measured on an emulated device (qemu-user): not the board's speed
 
 
 def _timed(phase: str, read: Callable[[Measurement], Any]) -> Callable[[Row], str]:
-    """A figure of a timed phase, marked APPROXIMATE when that phase never had a clean attempt, EMULATED when
-    an emulated device measured it."""
+    """A figure of a timed phase, marked APPROXIMATE when that phase was disturbed or missed the precision
+    asked for (wide_phases), EMULATED when an emulated device measured it."""
     def render(row: Row) -> str:
         text = sig(figure(row.record, read), 3)
         marked = phase in disturbed_phases(row.record) or phase in wide_phases(row.record)
@@ -129,9 +129,11 @@ LEADING: tuple[Column, ...] = (
 TRAILING: tuple[Column, ...] = (
     Column("p50\nms", "median latency of one inference at batch 1, in milliseconds, over every round's "
                        "window; \"~\" after a timing figure marks a phase with too many windows disturbed "
-                       "by other processes or CPU steal, or whose interval stayed wider than the target "
-                       "(older records: no clean attempt); treat it as approximate (the cell is listed "
-                       "under Disturbed or Wide); \"(emu)\": measured on an emulated device (qemu-user), "
+                       "by other processes or CPU steal, or whose interval stayed wider than the "
+                       "`ci_target` you set (records from before `asked`: than the target; older: no clean "
+                       "attempt); treat it as approximate (the cell is listed under Disturbed or Wide); a "
+                       "width nobody asked for is only its number in p50 CI ±%; "
+                       "\"(emu)\": measured on an emulated device (qemu-user), "
                        "not the board's speed.",
            _timed("latency", lambda m: m.latency and m.latency.p50), SPEED),
     Column("p50 CI\n±%", "half the width of the 95 % interval a rerun's p50 falls in while the machine keeps "

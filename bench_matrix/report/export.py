@@ -9,7 +9,9 @@ from typing import Any
 
 from bench_matrix.measurement import LatencyStats
 from bench_matrix.report.columns import MIB
+from bench_matrix.report.noise import noise
 from bench_matrix.report.summary import Report, Row, disturbed_phases, headline, metric, number
+from bench_matrix.report.verdict_view import open_lines
 from bench_matrix.store import CellRecord
 
 CELL_COLUMNS = ("key", "model", "framework", "backend", "strategy", "precision", "target", "host", "run")
@@ -28,7 +30,8 @@ CSV_COLUMNS = (*CELL_COLUMNS, "status", "reason", "size_bytes", "size_mib", "siz
 
 
 def report_json(records: list[CellRecord], report: Report) -> str:
-    """The JSON report: each model's requirements, the recommendations, how far other runs put its
+    """The JSON report: each model's requirements, the recommendations, the answers left open, how noisy
+    the machine was (`noise`, null without the rounds' window spreads), how far other runs put its
     artifacts' p50s (`reruns`), and every record (`CellRecord.to_json()`, in store order) with its verdict
     where it has one."""
     verdicts = {_identity(row.record): row.verdict for model in report.models for row in model.rows}
@@ -40,7 +43,10 @@ def report_json(records: list[CellRecord], report: Report) -> str:
                 for m in report.models if m.requirements is not None}
     recommended = [r.to_json() for model in report.models for r in model.recommendations]
     reruns = {m.name: [r.to_json() for r in m.reruns] for m in report.models if m.reruns}
-    data = {"requirements": required, "recommendations": recommended, "reruns": reruns, "records": found}
+    found_noise = noise(report)
+    data = {"requirements": required, "recommendations": recommended, "open": open_lines(report.models),
+            "noise": found_noise.to_json() if found_noise is not None else None, "reruns": reruns,
+            "records": found}
     return json.dumps(data, indent=2) + "\n"
 
 

@@ -23,8 +23,10 @@ from bench_matrix.report.text import (
 from bench_matrix.report.html_parts import SCRIPT, STYLE, Html, esc, figure, table
 from bench_matrix.report.plots import Plot
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
-from bench_matrix.report.verdict_view import HEADERS, INTRO, NUMERIC, closest_lines, requirement_lines, rows
+from bench_matrix.report.noise import noise
 from bench_matrix.report.sections import sections
+from bench_matrix.report.verdict_view import (HEADERS, INTRO, NUMERIC, closest_lines, open_lines,
+                                             requirement_lines, rows)
 
 TITLE = "bench-matrix report"
 
@@ -51,13 +53,17 @@ def page(report: Report, plots: Mapping[str, Sequence[Plot]]) -> str:
 
 
 def _verdict(report: Report) -> list[str]:
-    """The Verdict section: requirements, the recommended cells, the closest where none passes."""
+    """The Verdict section: requirements, the recommended cells, the closest where none passes, the answers
+    left open, and how noisy the machine was."""
     lines = "".join(f"<li>{esc(line)}</li>" for line in requirement_lines(report.models))
     parts = ["<h2>Verdict</h2>", f"<p>{esc(INTRO)}</p>", f"<ul>{lines}</ul>"]
     if found := rows(report.models):
         parts.append(table(list(HEADERS), NUMERIC, found))
     closest = closest_lines(report.models)
-    return parts + [f'<p class="note bad"><strong>{esc(line)}</strong></p>' for line in closest]
+    parts += [f'<p class="note bad"><strong>{esc(line)}</strong></p>' for line in closest]
+    parts += [f'<p class="note"><strong>Open:</strong> {esc(line)}</p>' for line in open_lines(report.models)]
+    found = noise(report)
+    return parts + ([f'<p class="meta noise">{esc(found.text(str))}</p>'] if found is not None else [])
 
 
 def _anchor(index: int) -> str:

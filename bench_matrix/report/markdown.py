@@ -25,8 +25,10 @@ from bench_matrix.report.text import (
 )
 from bench_matrix.report.plots import Plot
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
-from bench_matrix.report.verdict_view import HEADERS, INTRO, NUMERIC, closest_lines, requirement_lines, rows
+from bench_matrix.report.noise import noise
 from bench_matrix.report.sections import sections
+from bench_matrix.report.verdict_view import (HEADERS, INTRO, NUMERIC, closest_lines, open_lines,
+                                             requirement_lines, rows)
 from bench_matrix.store import CellRecord
 
 _COLUMN_NOTES = ("Latency is measured one sample at a time after warm-up runs; p50/p90/p99 are percentiles "
@@ -59,9 +61,11 @@ def write_pages(report: Report, out_dir: Path, plots: Mapping[str, Sequence[Plot
 
 
 def index_page(report: Report) -> str:
-    """Run summary, one line per model (fastest cell, its task's accuracy, link) and the environment."""
+    """Run summary, the verdict, how noisy the machine was, one line per model (fastest cell, its task's
+    accuracy, link) and the environment."""
+    found = noise(report)
     lines = ["# bench-matrix report", "", run_line(report), "", *verdict(report.models, INTRO),
-             "## Models", "",
+             *([_escape_text(found.text(_code)), ""] if found is not None else []), "## Models", "",
              _table(["Model", "Framework", "ok", "skipped", "failed", "Fastest cell", "p50 ms", "Speed-up",
                      "Accuracy"], [False, False, True, True, True, False, True, True, False],
                     [_index_row(m) for m in report.models]),
@@ -113,12 +117,14 @@ def model_page(model: ModelSummary, plots: Sequence[Plot], out_dir: Path) -> str
 
 
 def verdict(models: Sequence[ModelSummary], intro: str = "") -> list[str]:
-    """The "Verdict" section: requirements, the recommended cells, the closest where none passes."""
+    """The "Verdict" section: requirements, the recommended cells, the closest where none passes, and the
+    answers left open."""
     lines = ["## Verdict", "", *([_escape(intro), ""] if intro else [])]
     lines += [f"- {_escape_text(line)}" for line in requirement_lines(models)] + [""]
     if found := rows(models):
         lines += [_table([h for h, _ in HEADERS], NUMERIC, [[_escape(c) for c in row] for row in found]), ""]
-    return lines + [line for text in closest_lines(models) for line in (f"> **{_escape(text)}**", "")]
+    lines += [line for text in closest_lines(models) for line in (f"> **{_escape(text)}**", "")]
+    return lines + [line for text in open_lines(models) for line in (f"> **Open:** {_escape(text)}", "")]
 
 
 def _plots(plots: Sequence[Plot], out_dir: Path) -> list[str]:

@@ -154,7 +154,7 @@ def _draw_key(figure: Any, entries: Sequence[tuple[str, bool]], top: float, colu
     notes = ["number on the chart, backend strategy precision [target]", "* Pareto-optimal (bold, ringed)",
              *marks]
     if any(text.endswith(APPROXIMATE) for text, _ in entries):
-        notes.append("~ latency disturbed or its interval too wide (see the page)")
+        notes.append("~ latency disturbed or wider than the ci_target asked (see the page)")
     figure.text(LEFT, top, "Cells: " + ";  ".join(notes), fontsize=FONT, transform=figure.dpi_scale_trans,
                 va="top", style="italic")
     for k, (text, bold) in enumerate(entries):
@@ -306,7 +306,8 @@ def latency_figure(model: ModelSummary, timed: Sequence[tuple[CellRecord, np.nda
     axes.set_axisbelow(True)
     axes.set_xlabel("latency of one inference at batch 1, ms (box: 25th-75th percentile, black line: median, "
                     "whiskers: 1st-99th percentile)", fontsize=FONT + 1)
-    marked = "; ~ latency disturbed or its interval too wide" if any(APPROXIMATE in t for t in labels) else ""
+    approximate = any(APPROXIMATE in t for t in labels)
+    marked = "; ~ latency disturbed or wider than the ci_target asked" if approximate else ""
     axes.set_title(f"{_plain(model.name)}: latency per cell from the raw samples, fastest median on top"
                    f"{marked}", fontsize=FONT + 2, loc="left")
     return figure
@@ -352,7 +353,8 @@ def _scale(axes: Any, axis: str, values: Sequence[float]) -> None:
 
 
 def _approximate(record: CellRecord) -> bool:
-    """Whether the cell's latency is marked approximate in the results table (disturbed or too wide)."""
+    """Whether the cell's latency is marked approximate in the results table (disturbed, or wider than the
+    ci_target asked)."""
     return "latency" in disturbed_phases(record) or "latency" in wide_phases(record)
 
 

@@ -70,7 +70,7 @@ class ModelSummary:
     suspects: tuple[str, ...] = ()  # cells at different precisions whose test outputs are bit-identical
     implausible: Mapping[str, str] = field(default_factory=dict)  # why each cell's record cannot be right
     disturbed: tuple[str, ...] = ()  # cells flagged for interference (every attempt of a phase), and why
-    wide: tuple[str, ...] = ()  # cells whose latency interval stayed wider than the target (older: drifted)
+    wide: tuple[str, ...] = ()  # cells whose latency interval missed the ci_target asked for (older: drifted)
     requirements: Requirements | None = None  # what its cells were judged against; None: nothing declared
     requirements_from: str = ""  # where they were read
     recommendations: tuple[Recommendation, ...] = ()  # per target (and host) its cells ran on
@@ -194,9 +194,20 @@ def disturbed_phases(record: CellRecord) -> dict[str, str]:
     return _kept_problems(record, "disturbed")
 
 
+def asked(record: CellRecord) -> bool | None:
+    """Whether the user set the precision (`ci_target`) the record's rounds aimed at; None for records from
+    before the rounds said so."""
+    facts = record.metrics.rounds
+    value = facts.to_json().get("asked") if facts is not None else None
+    return value if isinstance(value, bool) else None
+
+
 def wide_phases(record: CellRecord) -> dict[str, str]:
-    """The timed phases whose interval stayed wider than the target, with why; for records from before the
-    rounds, those whose kept attempt still drifted (from before interference was measured: by stability)."""
+    """The timed phases whose interval stayed wider than the precision the user asked for, with why (none
+    where the user asked for none); for records from before the rounds, those whose kept attempt still
+    drifted (from before interference was measured: by stability)."""
+    if asked(record) is False:
+        return {}
     if record.metrics.interference is not None:
         return _kept_problems(record, "wide")
     stability = figure(record, lambda m: m.passes.stability)

@@ -29,12 +29,14 @@ from bench_matrix.report.text import (
     run_line,
     skip_reason,
 )
+from bench_matrix.report.noise import noise
 from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
 from bench_matrix.report.verdict_view import (
     HEADERS,
     NONE_PASSES,
     NUMERIC,
     closest_lines,
+    open_lines,
     requirement_lines,
     rows,
 )
@@ -50,6 +52,8 @@ def print_report(report: Report, console: Console) -> None:
     """Print the run line, every model's tables and the environment panel."""
     console.print(Text(run_line(report)))
     print_verdict(report.models, console)
+    if (found := noise(report)) is not None:
+        console.print(Text(found.text(str), style="dim"))
     if len(report.models) > 1:
         console.print(_overview(report))
     for model in report.models:
@@ -58,8 +62,8 @@ def print_report(report: Report, console: Console) -> None:
 
 
 def print_verdict(models: tuple[ModelSummary, ...], console: Console) -> None:
-    """The Verdict section: each model's requirements, the recommended cells, and the closest where none
-    passes."""
+    """The Verdict section: each model's requirements, the recommended cells, the closest where none
+    passes, and the answers left open."""
     console.rule(Text("Verdict", style="bold"))
     for line in requirement_lines(models):
         console.print(Text(line, style="dim"))
@@ -73,6 +77,8 @@ def print_verdict(models: tuple[ModelSummary, ...], console: Console) -> None:
         console.print(table)
     for line in closest_lines(models):
         console.print(Text(line, style="red"))
+    for line in open_lines(models):
+        console.print(Text(f"Open: {line}", style="yellow"))
 
 
 def _overview(report: Report) -> Table:

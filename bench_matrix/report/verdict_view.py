@@ -10,7 +10,7 @@ from bench_matrix.ranking import FIGURES
 from bench_matrix.report.columns import EMULATED, sig
 from bench_matrix.report.recommend import Recommendation
 from bench_matrix.report.summary import ModelSummary, emulated
-from bench_matrix.verdict import figure
+from bench_matrix.verdict import UNCERTAIN, figure
 
 INTRO = ("Each ok cell is judged against its model's requirements: pass; fail, naming each requirement "
          "missed and by how much; or uncertain, where a timed figure's 95 % interval straddles its limit. "
@@ -68,6 +68,27 @@ def closest_lines(models: Sequence[ModelSummary]) -> list[str]:
             cells = "; ".join(f"{c.record.cell.label} ({c.verdict.short()})" for c in found.closest)
             lines.append(f"{found.model} on {found.target}: no cell passes; closest: {cells}")
     return lines
+
+
+def open_lines(models: Sequence[ModelSummary]) -> list[str]:
+    """The answers the verdict leaves open, one line each: a recommended cell not told apart from its
+    runner-up, and each uncertain cell not already listed among the closest to passing."""
+    lines = []
+    for model in judged(models):
+        closest = {c.record.cell.key for found in model.recommendations for c in found.closest}
+        lines += [_tie(found) for found in model.recommendations if found.distinguishable is False]
+        lines += [f"{model.name}: {row.record.cell.label} is {row.verdict.short()}" for row in model.rows
+                  if row.verdict is not None and row.verdict.status == UNCERTAIN
+                  and row.record.cell.key not in closest]
+    return lines
+
+
+def _tie(found: Recommendation) -> str:
+    """A recommendation whose ratio to its runner-up has an interval that holds 1."""
+    low, high = found.ratio_ci
+    return (f"{found.model} on {found.target}: the recommended {found.best.cell.label} is not told apart "
+            f"from the runner-up {found.runner_up.cell.label} ({found.ratio:.2f}×, 95 % interval "
+            f"{low:.2f}–{high:.2f}×): either will do, or more timing_budget_s may tell them apart")
 
 
 def _row(found: Recommendation, several: bool) -> list[str]:
