@@ -43,12 +43,29 @@ def add_device_command(sub: Any) -> None:
     commands = device.add_subparsers(dest="device_command", required=True, metavar="COMMAND")
     check = commands.add_parser("check", help="log in, compare versions, probe backends and targets; exit 0 "
                                               "when the device is usable, 1 when not, 2 when unreachable")
-    check.add_argument("target", metavar="[USER@]HOST[:PORT][=PYTHON]")
+    check.add_argument("target", metavar="[USER@]HOST[:PORT][=PYTHON]", nargs="?",
+                       help="the device; without one, how noisy this machine is for timing")
+    check.add_argument("--seconds", type=float, default=10.0,
+                       help="without a device: seconds of timed windows (default: %(default)s)")
+    check.add_argument("--json", action="store_true", help="without a device: the check as JSON")
     add_device_options(check, many=False)
     check.set_defaults(handler=_check)
 
 
+def _here(args: argparse.Namespace, console) -> int:
+    """This machine's noise for timing (docs/devices.md §8)."""
+    from bench_matrix.errors import UserError
+    from bench_matrix.machine_check import check_here, show
+
+    if not 0 < args.seconds <= 600:
+        raise UserError(f"--seconds must be more than 0 and at most 600, got {args.seconds:g}")
+    show(check_here(args.seconds), console, args.json)
+    return 0
+
+
 def _check(args: argparse.Namespace, console) -> int:
+    if args.target is None:
+        return _here(args, console)
     from bench_matrix.errors import UserError
     from bench_matrix.executors.ssh_link import Link, Unreachable
 
