@@ -7,8 +7,12 @@ how the machine's speed moved between the runs (the median p50 ratio), which no 
 see, and how many intervals hold run 2's p50 with that move taken out. The last line: `speed-up difference
 median X %, max Y %; p50 CI coverage Z %; flagged N of M; timing T s` (T: the seconds both runs spent in
 rounds). With --hog, a CPU-bound process runs on the other core during run 2.
+Then the answers, judged by the report's own code against the matrix's requirements: per model and target,
+both runs' recommended cells (and whether each run tells it from its runner-up) and verdicts, and a last line
+`answers same N of M` (the same recommended cell and every cell's verdict the same in both runs).
 Targets on a quiet 2-core VM: median <= 2 %, max <= 5 %, coverage >= 90 %, at most 10 % of cells marked;
-under --hog, every cell within 5 % of its quiet speed-up, or marked.
+under --hog, every cell within 5 % of its quiet speed-up, or marked; the answers the same in every pair where
+the runs call the recommendation distinguishable.
 
     .venv/bin/python benchmarks/reproducibility.py [--matrix M.yaml] [--hog] [--workdir DIR]
 """
@@ -23,7 +27,9 @@ import sys
 import tempfile
 from pathlib import Path
 
-from bench_matrix.report.summary import disturbed_phases, wide_phases
+from bench_matrix.report import load_judged
+from bench_matrix.report.judging import Judging
+from bench_matrix.report.summary import ModelSummary, disturbed_phases, wide_phases
 from bench_matrix.store import CellRecord, ResultStore
 
 # the PilotNet TensorFlow variant through TensorFlow (its baseline), TFLite, ONNX Runtime and OpenVINO
@@ -35,6 +41,7 @@ strategies:
   ptq_static: {kind: ptq_static, calibration_samples: 100}
 axes: {backend: [tensorflow, tflite, onnxruntime, openvino], strategy: [none, ptq_dynamic, ptq_static],
        precision: [fp32, fp16, int8], target: [cpu]}
+requirements: {max_drop: 5%, p50_ms: 25, p99_ms: 50}
 settings: {threads: 1}
 """
 
@@ -112,6 +119,36 @@ def table(first: list[CellRecord], second: list[CellRecord]) -> list[str]:
     return lines
 
 
+def answers(workdir: Path, matrix: Path) -> list[str]:
+    """Per model and target, both runs' recommended cells and verdicts; then `answers same N of M`."""
+    loaded = [load_judged(workdir / f"{label}.sqlite", judging=Judging(matrix)) for label in ("run1", "run2")]
+    judged = [{m.name: m for m in found.report.models} for found in loaded]
+    lines, same, total = [], 0, 0
+    for name in sorted(set(judged[0]) & set(judged[1])):
+        one, two = judged[0][name], judged[1][name]
+        for first, second in zip(one.recommendations, two.recommendations):
+            verdicts = [_verdicts(model) for model in (one, two)]
+            agree = _best(first) == _best(second) and verdicts[0] == verdicts[1]
+            same, total = same + agree, total + 1
+            changed = sorted(k for k in verdicts[0] if verdicts[0][k] != verdicts[1].get(k))
+            lines.append(f"{name} on {first.target}: recommended {_said(first)} | {_said(second)}; verdicts "
+                         + ("the same" if not changed else f"differ for {', '.join(changed)}"))
+    return lines + [f"answers same {same} of {total}"]
+
+
+def _verdicts(model: ModelSummary) -> dict[str, str]:
+    return {row.record.cell.key: row.verdict.status for row in model.rows if row.verdict is not None}
+
+
+def _best(found) -> str | None:
+    return found.best.cell.key if found.best is not None else None
+
+
+def _said(found) -> str:
+    told = {True: "distinguishable", False: "a tie", None: "no runner-up"}[found.distinguishable]
+    return f"{found.best.cell.label if found.best else 'none'} ({told})"
+
+
 def _x(value: float | None) -> str:
     return "    —" if value is None else f"{value:5.2f}×"
 
@@ -137,7 +174,7 @@ def main() -> None:
         if competitor is not None:
             competitor.kill()
             competitor.wait()
-    print("\n".join(table(first, second)))
+    print("\n".join(table(first, second) + answers(workdir, matrix)))
 
 
 if __name__ == "__main__":

@@ -15,11 +15,14 @@ from bench_matrix.errors import UserError
 from bench_matrix.report.compare import (
     DEFAULT_THRESHOLDS,
     TEST,
+    UNCHANGED,
+    WORSE,
     Side,
     compare,
     parse_threshold,
 )
 from bench_matrix.report.compare_view import comparison_json, comparison_markdown, print_comparison
+from bench_matrix.measurement import Speedup
 from bench_matrix.store import CellRecord
 
 ORT = Cell("pilotnet", "pytorch", "onnxruntime", "none", "fp32", "cpu")
@@ -331,3 +334,27 @@ def test_p50_is_judged_on_the_paired_speedup_where_both_sides_have_one() -> None
     console = Console(record=True, width=220)
     print_comparison(held, console)
     assert "2.00× → 2.02×" in console.export_text()
+
+
+def _remeasured(ratio: float, half: float, thresholds: dict[str, float] | None = None):
+    """A remeasured cell whose base time ÷ new time is `ratio` with a 95 % interval of ± `half` (relative)."""
+    samples = _samples(1.0)
+    before = _side("run 1", (_record(ORT, samples), samples))
+    after = _side("run 2", (_record(ORT, samples), samples))
+    twin = Speedup.from_json({"value": ratio, "ci": [ratio / (1 + half), ratio * (1 + half)],
+                              "ci_half": half, "rounds": 10})
+    return _metric(compare(before, after, thresholds, twins={ORT.key: twin}), "p50")
+
+
+def test_a_remeasured_p50_gates_on_its_paired_interval_beyond_five_percent() -> None:
+    assert _remeasured(1.0, 0.03).verdict == UNCHANGED  # unchanged, known to ±3 %
+    assert _remeasured(1 / 1.03, 0.01).verdict == UNCHANGED  # a real +3 %: within 5 %
+    slower = _remeasured(1 / 1.10, 0.03)  # +10 %, known to ±3 %: caught
+    assert slower.verdict == WORSE and slower.threshold == 0.05 and slower.change == pytest.approx(0.10)
+    assert _remeasured(1 / 1.10, 0.15).verdict == UNCHANGED  # +10 % but known only to ±15 %: cannot tell
+    assert _remeasured(1 / 1.178, 0.03).verdict == WORSE  # the planted +17.8 % the 20 % default passed
+
+
+def test_a_p50_threshold_the_user_gives_still_decides_a_remeasured_cell() -> None:
+    assert _remeasured(1 / 1.10, 0.03, {"p50": 0.2}).verdict == UNCHANGED
+    assert _remeasured(1 / 1.03, 0.01, {"p50": 0.02}).verdict == WORSE

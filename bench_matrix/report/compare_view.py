@@ -55,7 +55,8 @@ def _remeasured(comparison: Comparison) -> str:
     if not comparison.remeasured:
         return ""
     return ("; remeasured: both sides' artifacts timed again on this machine in the same interleaved rounds, "
-            "p50 judged on the new time ÷ the base time paired by round (its 95 % interval excludes 1)")
+            "p50 judged on the new time ÷ the base time paired by round (its 95 % interval excludes 1, "
+            f"beyond {_percent(comparison.thresholds['p50_remeasured'])})")
 
 
 def title_line(comparison: Comparison) -> str:
