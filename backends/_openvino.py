@@ -53,13 +53,11 @@ def openvino_version() -> str:
     return installed_versions("openvino").get("openvino", "(unknown version)")
 
 
-def missing_reason(precision: str) -> str | None:
-    """Why the libraries running `precision` need cannot be imported here (found without importing them), or
-    None. int8's NNCF is asked for here too: a probe is not told whether it converts or only runs."""
+def missing_reason() -> str | None:
+    """Why OpenVINO cannot be imported here (found without importing it), or None. int8's NNCF converts and
+    is not needed to run: the int8 Support's convert_needs names it."""
     if importlib.util.find_spec("openvino") is None:
         return f"openvino is not installed: {INSTALL}"
-    if precision == "int8" and importlib.util.find_spec("nncf") is None:
-        return f"nncf is not installed (int8 is NNCF's post-training quantisation): {INSTALL}"
     return None
 
 

@@ -39,7 +39,7 @@ class OpenVinoBackend(Backend):
     description = ("OpenVINO on the CPU, Intel GPU and Intel NPU: fp32 (forced), bf16 and fp16 where the "
                    "device computes them, int8 by NNCF post-training quantisation")
     supports = (Support(FRAMEWORKS, ("none",), ("fp32", "fp16", "bf16"), TARGETS),
-                Support(FRAMEWORKS, ("ptq_static",), ("int8",), TARGETS))
+                Support(FRAMEWORKS, ("ptq_static",), ("int8",), TARGETS, convert_needs=("nncf",)))
     devices = {}  # not CUDA: the Intel GPU and NPU are timed from the host, as the CPU is
     options = {
         "hint": {"enum": ["latency", "throughput"], "default": "latency",
@@ -54,7 +54,7 @@ class OpenVinoBackend(Backend):
         return installed_versions("openvino", "nncf", "onnx", "torch", "tf2onnx", "tensorflow")
 
     def probe(self, target: str, precision: str) -> str | None:
-        return missing_reason(precision) or device_reason(target, precision)
+        return missing_reason() or device_reason(target, precision)
 
     def probe_source(self, framework: str, source_format: str) -> str | None:
         """Every source reaches OpenVINO as ONNX: onnx, and tf2onnx for Keras models."""

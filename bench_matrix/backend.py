@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -27,6 +28,9 @@ class Support:
     strategies: tuple[str, ...]
     precisions: tuple[str, ...]
     targets: tuple[str, ...]
+    # modules converting these combinations needs and running them does not (a device that only runs the
+    # converted artifact lacks them): judged where the model is converted, never on a device that only runs
+    convert_needs: tuple[str, ...] = ()
 
     def covers(self, framework: str, strategy: str, precision: str, target: str) -> bool:
         return (framework in self.frameworks and strategy in self.strategies
@@ -122,6 +126,15 @@ class Backend(ABC):
     def probe_source(self, framework: str, source_format: str) -> str | None:
         """Why this machine cannot read `framework` models in `source_format` (a converter missing), or None."""
         return None
+
+    def convert_needs_reason(self, framework: str, strategy: str, precision: str, target: str) -> str | None:
+        """Why this machine cannot convert the combination: the modules its Supports' convert_needs name that
+        cannot be found here (found without importing them), or None. Not asked where only running happens."""
+        missing = sorted({m for s in self.supports if s.covers(framework, strategy, precision, target)
+                          for m in s.convert_needs if importlib.util.find_spec(m) is None})
+        if not missing:
+            return None
+        return f"needs {', '.join(missing)} to convert {strategy} at {precision}, not installed"
 
     def invalid_reason(self, framework: str, strategy: str, precision: str, target: str) -> str | None:
         """Why the combination is not one this backend implements, or None."""

@@ -94,3 +94,4 @@ class CellPlan:
     log: Path | None = field(default=None, compare=False)
     fingerprint: str = ""
     scenarios: tuple[Planned, ...] = ()  # measured after the latency scenario, in order
+    judged_on: str | None = None  # the host that judged the cell (a device), when not this machine

@@ -345,8 +345,8 @@ class Runner:
         self.counts[record.status] += 1
 
     def _skipped_before(self, p: CellPlan) -> bool:
-        """Whether this host's newest record of a cell to skip already skips it for the same reason."""
-        record = self.store.latest(p.cell, self.host)
+        """Whether the judging host's newest record of a cell to skip already skips it for the same reason."""
+        record = self.store.latest(p.cell, p.judged_on or self.host)
         return record is not None and (record.status, record.reason, record.fingerprint) == (
             "skipped", p.reason, p.fingerprint)
 
@@ -354,9 +354,15 @@ class Runner:
                 metrics: Measurement | None = None, env: dict | None = None, artifact: str | None = None
                 ) -> CellRecord:
         return CellRecord(cell=p.cell, status=status, reason=reason, metrics=metrics or Measurement(),
-                          artifact_path=artifact, env=env or environment.capture(), started_at=started,
+                          artifact_path=artifact, env=env or _judged_env(p), started_at=started,
                           finished_at=_now(), fingerprint=p.fingerprint, matrix=str(self.matrix.path),
                           run_id=self.run_id)
+
+
+def _judged_env(p: CellPlan) -> dict:
+    """This machine's facts, stored under the host that judged the cell (a device that skipped it)."""
+    env = environment.capture()
+    return {**env, "host": p.judged_on} if p.judged_on else env
 
 
 def _now() -> str:

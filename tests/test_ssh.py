@@ -107,7 +107,9 @@ def test_a_device_without_a_backend_skips_its_cells_naming_the_device(onnx_proje
     assert by_backend["onnxruntime"]["status"] == "ok" and by_backend["onnxruntime"]["host"] == "device-b"
     skipped = by_backend["slow_ort"]
     assert skipped["status"] == "skipped" and skipped["reason"].startswith(f"{server.device}: ")
-    assert "slow_ort" in skipped["reason"]
+    assert "slow_ort" in skipped["reason"] and skipped["host"] == "device-b"  # the device judged it
+    store = str(onnx_project / "ws" / "results.sqlite")
+    _ok(cli(onnx_project, "compare", store, store, env=env))  # one host per side: comparable
 
 
 def test_device_check_says_what_the_device_runs_and_what_it_lacks(onnx_project, server):

@@ -64,7 +64,8 @@ class Here:
                                     lambda: backend.option_reason(step, source_format))):
             return f"not valid for the kit's {source_format} model: {invalid}"
         reasons = (self._ask(backend, "probe", (case.target, case.precision)),
-                   self._ask(backend, "probe_source", (case.framework, source_format)))
+                   self._ask(backend, "probe_source", (case.framework, source_format)),
+                   backend.convert_needs_reason(*combination))
         return "; ".join(r for r in reasons if r) or None
 
     def _ask(self, backend: Backend, method: str, args: tuple[str, ...],

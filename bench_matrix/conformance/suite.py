@@ -85,6 +85,10 @@ class BackendConformance:
         for s, axis in ((s, axis) for s in supports for axis in AXES):
             if not _names(getattr(s, axis)):
                 raise RuleBroken("declares-supports", f"{s!r}: {axis} is not a non-empty tuple of names")
+        for s in supports:
+            needs = s.convert_needs
+            if not (isinstance(needs, tuple) and all(isinstance(m, str) and m for m in needs)):
+                raise RuleBroken("declares-supports", f"{s!r}: convert_needs is not a tuple of module names")
         if problem := _devices_problem(backend.devices, {t for s in supports for t in s.targets}):
             raise RuleBroken("declares-devices", problem)
 

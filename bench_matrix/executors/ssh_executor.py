@@ -8,7 +8,7 @@ import selectors
 import shutil
 import tempfile
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -81,9 +81,14 @@ class SshExecutor(Executor):
             judged = {name: found[p.cell] for name, found in states.items()}
             able = [name for name, (state, _) in judged.items() if state == "run"] or list(self.down)
             self._able[p.cell.key] = able
-            decided.append(replace(p, state="run", reason=None) if able else
-                           replace(p, state="skip", reason=_reasons(judged)))
+            decided.append(replace(p, state="run", reason=None, judged_on=self._judge(able)) if able else
+                           replace(p, state="skip", reason=_reasons(judged), judged_on=self._judge(judged)))
         return decided
+
+    def _judge(self, devices: Iterable[str]) -> str | None:
+        """The host a cell's records not measured there are stored under: the first of its devices' hosts."""
+        first = min(devices, default=None)
+        return None if first is None else self.hostnames.get(first, first)
 
     def _probe(self, name: str, plan: Plan, cells: list[CellPlan]) -> dict[Any, Judged] | None:
         """The device's judgement (state, reason) of each cell, from the probe job run there; None when the

@@ -78,7 +78,9 @@ def _verdict(backends: dict[str, Backend | None], described: dict[str, Any], key
     invalid = b.invalid_reason(framework, kind, precision, target) or b.option_reason(step, source_format)
     try:
         reasons = [] if invalid else [b.probe(target, precision)]
-        reasons += [] if invalid or measure_only else [b.probe_source(framework, source_format)]
+        if not (invalid or measure_only):
+            reasons += [b.probe_source(framework, source_format),
+                        b.convert_needs_reason(framework, kind, precision, target)]
         skip = "; ".join(r for r in reasons if r) or None
     except Exception as exc:  # a probe that crashes is a reason, not a crash of the run
         skip = f"probing {name} for {target}/{precision} failed: {type(exc).__name__}: {exc}"
