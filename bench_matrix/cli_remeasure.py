@@ -19,7 +19,8 @@ from bench_matrix.store import CellRecord
 
 def remeasured(base: Side, new: Side, matrix: Path | None, workspace: Path
                ) -> tuple[Side, Side, dict[str, Speedup] | None]:
-    """Both sides with the remeasured cells' figures and samples, and each one's base time ÷ new time."""
+    """Both sides with the remeasured cells' figures and samples, and each one's base time ÷ new time (empty
+    where the rounds could not pair them)."""
     from bench_matrix.executors import open_executor
     from bench_matrix.executors.local import probe
     from bench_matrix.matrix import load_matrix
@@ -44,10 +45,10 @@ def remeasured(base: Side, new: Side, matrix: Path | None, workspace: Path
     for key, why in sorted(result.missing.items()):
         console.print(f"not remeasured (judged on the stored samples): {key}: {why}", highlight=False,
                       markup=False, soft_wrap=True)
-    ratios = {key: sides[NEW].metrics.speedup for key, sides in result.measured.items()}
+    ratios = {key: sides[NEW].metrics.speedup or Speedup() for key, sides in result.measured.items()}
     return (_side(base, {key: sides[BASE] for key, sides in result.measured.items()}),
             _side(new, {key: sides[NEW] for key, sides in result.measured.items()}),
-            {key: ratio for key, ratio in ratios.items() if ratio is not None} or None)
+            ratios or None)
 
 
 def _matrix_of(side: Side) -> Path:

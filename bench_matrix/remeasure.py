@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +20,8 @@ from bench_matrix.store import CellRecord
 from bench_matrix.workspace import Workspace
 
 BASE, NEW = "base", "new"
+TWIN_PROCESSES = 4  # at least this many session processes a side: how two processes of one artifact differ
+# (about 1 % here) is then estimated with 3 degrees of freedom a side, not 1, and averages out by √4
 
 
 @dataclass(frozen=True)
@@ -119,6 +121,7 @@ class Remeasure(Runner):
         """Both artifacts of the cell, as they are (no fine-tuning, no conversion), each scored against its
         side's own baseline."""
         model, settings = ready.model, self.matrix.settings
+        settings = replace(settings, processes=max(settings.processes, TWIN_PROCESSES))
         measuring = []
         references = self.references.get(model.spec.name, {})
         for side, folder in zip((BASE, NEW), self.twins.folders[p.cell.key]):

@@ -14,6 +14,7 @@ from bench_matrix.cell import Cell
 from bench_matrix.errors import UserError
 from bench_matrix.report.compare import (
     DEFAULT_THRESHOLDS,
+    NOT_COMPARABLE,
     TEST,
     UNCHANGED,
     WORSE,
@@ -353,6 +354,14 @@ def test_a_remeasured_p50_gates_on_its_paired_interval_beyond_five_percent() -> 
     assert slower.verdict == WORSE and slower.threshold == 0.05 and slower.change == pytest.approx(0.10)
     assert _remeasured(1 / 1.10, 0.15).verdict == UNCHANGED  # +10 % but known only to ±15 %: cannot tell
     assert _remeasured(1 / 1.178, 0.03).verdict == WORSE  # the planted +17.8 % the 20 % default passed
+
+
+def test_twins_the_rounds_could_not_pair_are_not_compared_on_their_samples() -> None:
+    samples = _samples(1.0)
+    before = _side("run 1", (_record(ORT, samples), samples))
+    after = _side("run 2", (_record(ORT, _samples(1.3, seed=2)), _samples(1.3, seed=2)))  # a neighbour's 30 %
+    p50 = _metric(compare(before, after, None, twins={ORT.key: Speedup()}), "p50")
+    assert p50.verdict == NOT_COMPARABLE and "too busy to pair them" in p50.why
 
 
 def test_a_p50_threshold_the_user_gives_still_decides_a_remeasured_cell() -> None:

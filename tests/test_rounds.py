@@ -9,8 +9,9 @@ import random
 import numpy as np
 import pytest
 
-from bench_matrix.measure.rounds import (Interval, Spread, level_interval, log_levels, medians, moderated,
-                                         p50_interval, pooled, process_spread, rate_interval, speedup, t95)
+from bench_matrix.measure.rounds import (STRAY, Interval, Spread, level_interval, log_levels, medians,
+                                         moderated, p50_interval, pooled, process_spread, rate_interval,
+                                         speedup, steady, t95)
 from bench_matrix.measure.schedule import LATENCY, Rounds, RoundsSettings, Timed, paired, spread
 from bench_matrix.measure.stats import median_interval
 from rounds_sim import NEVER_NARROW, FakeSession, Machine, rounds_on
@@ -278,6 +279,57 @@ def test_rate_interval_is_samples_per_second_with_the_spread_of_round_rates():
     assert rate_interval(one([90.0, 110.0]), samples=3000, seconds=0.0) is None
 
 
+# --- windows a neighbour slowed ---------------------------------------------------------------------------
+
+
+def neighbour(seed: int, level: float, hit: float, rounds: int = 12, processes: int = 4) -> dict:
+    """A cell's window medians by slot: `level` ± 0.3 %, a process ±1 % for its lifetime, and each window
+    slowed 1.3-1.55× with probability `hit` (a neighbour VM on the SMT sibling, which no counter shows)."""
+    rng = np.random.default_rng(seed)
+    offsets = rng.normal(0.0, 0.01, processes)
+    return {(r, j): level * math.exp(offsets[j] + rng.normal(0.0, 0.003))
+            * (rng.uniform(1.3, 1.55) if rng.random() < hit else 1.0)
+            for r in range(rounds) for j in range(processes)}
+
+
+def test_windows_a_neighbour_slowed_leave_the_figures_and_twins_come_out_equal():
+    """Twins of one artifact, 40 % of their windows slowed by a neighbour (over half of some processes'):
+    the screened speed-up is 1 within 2 % and its interval holds 1; unscreened, it moves by several %."""
+    screened, plain = [], []
+    for seed in range(20):
+        base, new = neighbour(2 * seed, 10.0, 0.4), neighbour(2 * seed + 1, 10.0, 0.4)
+        ratio = speedup(base, new, pooled(process_spread(steady(log_levels(c))) for c in (base, new)))
+        assert ratio.low <= 1.0 <= ratio.high and abs(math.log(ratio.value)) < 0.02
+        screened.append(abs(math.log(ratio.value)))
+        plain.append(abs(float(np.mean([math.log(base[s] / new[s]) for s in base]))))
+    assert max(plain) > 0.05 > 3 * max(screened)
+    quiet = neighbour(0, 10.0, 0.0)
+    assert steady(log_levels(quiet)) == log_levels(quiet)  # a quiet cell keeps every window
+
+
+def test_a_slowed_window_is_told_from_drift_and_from_a_noisy_cells_own_spread():
+    drift = {(r, 0): 10.0 * math.exp(0.1 * math.sin(r / 3)) for r in range(20)}  # ±10 %, slowly
+    assert steady(log_levels(drift)) == log_levels(drift)
+    noisy = {(r, 0): 10.0 * math.exp(v) for r, v in enumerate(np.random.default_rng(1).normal(0, 0.05, 20))}
+    assert steady(log_levels(noisy)) == log_levels(noisy)  # ±5 % windows: 8 spreads exceed STRAY
+    hit = {**drift, (7, 0): drift[7, 0] * math.exp(STRAY + 0.05)}
+    assert set(steady(log_levels(hit))) == set(drift) - {(7, 0)}
+    rates = {slot: 1000.0 / v for slot, v in hit.items()}  # a rate falls where a time rises
+    assert set(steady(log_levels(rates), rate=True)) == set(drift) - {(7, 0)}
+    few = dict(list(hit.items())[:8])  # under STEPS steps: nothing to judge a window against
+    assert steady(log_levels(few)) == log_levels(few)
+
+
+def test_a_round_missing_a_process_keeps_its_level():
+    """Two processes 4 % apart, the cell twice as fast in every round: a round without its slower process is
+    not 2 % faster for it, so the speed-up stays 2 exactly (its interval still holds the processes' part)."""
+    base = {(r, j): 10.0 * (1.04 if j else 1.0) for r in range(4) for j in (0, 1)}
+    cell = {slot: time / 2 for slot, time in base.items() if slot != (2, 1)}
+    ratio = speedup(base, cell)
+    assert ratio.value == pytest.approx(2.0, rel=1e-9) and ratio.rounds == 4
+    assert ratio.low < 2.0 < ratio.high
+
+
 # --- the record's timed figures -----------------------------------------------------------------------------
 
 
@@ -310,6 +362,13 @@ def test_figures_record_the_processes_and_mark_only_cells_that_did_not_leave_nar
     assert wide.startswith("known to ±")  # the budget ran out first; the 4 % apart processes, not the rounds,
     assert "however many rounds; more processes a cell (`processes`) would narrow it" in wide  # keep it wide
     assert record["latency_ms"]["n"] == 12 * 30 and record["speedup"]["rounds"] == 6
+    assert record["rounds"]["strayed"] == 0
+    hit = Timed(stop="budget")  # one window of the twelve slowed 1.45 times by a neighbour
+    for slot, window in left.kept[LATENCY].items():
+        hit.add(slot, Window(LATENCY, window.durations_ms * (1.45 if slot == (3, 1) else 1.0)))
+    slowed = figures(hit, base, settings, Limits(), {LATENCY: model}).fields
+    assert slowed["rounds"]["strayed"] == 1 and slowed["latency_ms"]["n"] == 12 * 30  # its calls stay
+    assert slowed["speedup"]["value"] == pytest.approx(record["speedup"]["value"], rel=0.01)
 
 
 def test_a_cell_wide_for_want_of_rounds_says_about_how_many_times_as_many_would_do():

@@ -8,10 +8,10 @@ from collections.abc import Iterator
 from bench_matrix.errors import UserError
 from bench_matrix.executors.base import Ended, Executor, Limits, Phase, Tick, Work
 from bench_matrix.executors.process import run_in_process
-from bench_matrix.executors.rounds import measure_in_rounds
-from bench_matrix.jobs import ProbeJob, RoundsJob
+from bench_matrix.jobs import ProbeJob
 from bench_matrix.jobs.results import Probe
 from bench_matrix.measure import env as environment
+from bench_matrix.named import resolve
 from bench_matrix.workspace import Workspace
 
 PROBE_TIMEOUT_S = 300.0
@@ -49,10 +49,10 @@ class LocalExecutor(Executor):
             yield self._ended.pop(0)
 
     def run(self, work: Work, on_phase: Phase = lambda _: None, tick: Tick = lambda: None) -> Ended:
-        """Run the work's job in its own process (a rounds job: one process per cell, executors/rounds.py)."""
+        """Run the work's job in its own process (a timed one here, each session it times in its own)."""
         job, limits = work.job, work.limits
-        if isinstance(job, RoundsJob):
-            measured = measure_in_rounds(job, self.workspace.jobs, limits.log.parent, on_phase)
+        if job.timed:
+            measured = resolve(job.function)(job, self.workspace.jobs, limits.log.parent, on_phase)
             return Ended(work, (job,), (measured,))
         outcome = run_in_process(job, self.workspace.jobs, limits.log, limits.timeout_s, limits.threads,
                                  on_phase, tick)

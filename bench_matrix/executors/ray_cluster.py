@@ -21,7 +21,7 @@ from bench_matrix.executors.base import Ended, Executor, Limits, Phase, Tick, Wo
 from bench_matrix.executors.local import PROBE_TIMEOUT_S
 from bench_matrix.executors.ray_tasks import NodeRun, Shipment
 from bench_matrix.executors.shipping import pack
-from bench_matrix.jobs import ConvertJob, Job, ProbeJob, RoundsJob
+from bench_matrix.jobs import Job, ProbeJob
 from bench_matrix.jobs.results import MeasuredGroup
 from bench_matrix.matrix.expand import judge, training_key, verdict_key
 from bench_matrix.matrix.spec import file_kind
@@ -127,10 +127,10 @@ class RayExecutor(Executor):
     def _launch(self, flight: _Flight) -> None:
         """Submit the flight's job as a task, with what it reads shipped."""
         job = flight.work.job
-        cell = _cell(job)
+        cell = job.placed()
         shipments = {str(path): self._ship(path) for path in job.reads()}
         options = {"num_cpus": 1, "num_gpus": gpu_share(self._devices, cell) if cell else 0,
-                   "resources": {TIMING: MEASURE_SHARE if isinstance(job, RoundsJob) else JOB_SHARE},
+                   "resources": {TIMING: MEASURE_SHARE if job.timed else JOB_SHARE},
                    "max_retries": 0, "num_returns": 2, "name": f"{job.name}_on_node",
                    "scheduling_strategy": self._on(flight.node) if flight.node else "DEFAULT"}
         flight.submitted = time.time()
@@ -147,7 +147,7 @@ class RayExecutor(Executor):
         return min(able, key=lambda n: busy[n])
 
     def _able_nodes(self, job: Job) -> list[str]:
-        cell = _cell(job)
+        cell = job.placed()
         return self._able.get(cell.key, list(self.nodes)) if cell else list(self.nodes)
 
     def _on(self, node: str | None) -> Any:
@@ -240,14 +240,6 @@ class RayExecutor(Executor):
 def gpu_share(known: dict[tuple[str, str], str], cell: Cell) -> float:
     """The GPUs a cell's task asks Ray for: a share where its backend runs its target on CUDA, else none."""
     return GPU_SHARE if known.get((cell.backend, cell.target)) == "cuda" else 0
-
-
-def _cell(job: Job) -> Cell | None:
-    """The cell a job belongs to (a conversion's; a rounds job's first: its cells share a machine); None for
-    shared preparation."""
-    if isinstance(job, RoundsJob):
-        return job.cells[0].cell
-    return job.cell if isinstance(job, ConvertJob) else None
 
 
 def _connect(ray: Any, address: str | None) -> None:

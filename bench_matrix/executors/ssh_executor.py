@@ -19,7 +19,7 @@ from bench_matrix.executors.base import Ended, Executor, Limits, Phase, Tick, Wo
 from bench_matrix.executors.local import PROBE_TIMEOUT_S, LocalExecutor
 from bench_matrix.executors.ssh_flight import Flight
 from bench_matrix.executors.ssh_link import Device, Link, Unreachable
-from bench_matrix.jobs import ConvertJob, ProbeJob, RoundsJob
+from bench_matrix.jobs import ProbeJob
 from bench_matrix.matrix.expand import judge, training_key, verdict_key
 from bench_matrix.measure import env as environment
 from bench_matrix.plan import Plan
@@ -111,12 +111,12 @@ class SshExecutor(Executor):
 
     def submit(self, work: Work, on_phase: Phase, tick: Tick) -> None:
         job = work.job
-        if not isinstance(job, RoundsJob):
+        cell = job.placed()
+        if not job.timed:
             ended = self.local.run(work, on_phase, tick)
-            where = self._placement(job.cell.key) if isinstance(job, ConvertJob) else None
-            self._ended.append(replace(ended, where=where))
+            self._ended.append(replace(ended, where=self._placement(cell.key) if cell else None))
             return
-        device = work.on or self._placement(job.cells[0].cell.key)
+        device = work.on or self._placement(cell.key)
         if device in self.down:
             self._ended.append(self._failed(work, device, self.down[device]))
             return

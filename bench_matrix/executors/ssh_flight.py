@@ -18,7 +18,7 @@ from bench_matrix.executors.base import Ended, Phase, Work
 from bench_matrix.executors.codec import from_json
 from bench_matrix.executors.shipping import pack
 from bench_matrix.executors.ssh_link import PHASE, Link, Unreachable
-from bench_matrix.jobs import Job, RoundsJob
+from bench_matrix.jobs import Job
 from bench_matrix.jobs.results import MeasuredGroup
 from bench_matrix.matrix.spec import file_kind
 from bench_matrix.measure import env as environment
@@ -29,9 +29,8 @@ STOP_WAIT_S = 15  # how long a stopped job's ssh gets to end before it is killed
 
 
 def shipped_paths(job: Job) -> tuple[Path, ...]:
-    """What the device must hold to run the job: what it reads and, for a rounds job, the artifacts."""
-    artifacts = tuple(c.converted.directory for c in job.cells) if isinstance(job, RoundsJob) else ()
-    return tuple(p for p in dict.fromkeys((*job.reads(), *artifacts)) if p.exists())
+    """What the device must hold to run the job (`Job.ships`) that is here."""
+    return tuple(p for p in job.ships() if p.exists())
 
 
 class Flight:
@@ -85,7 +84,7 @@ class Flight:
     def _request(self) -> dict[str, Any]:
         """The job, and each file it needs: its content key and name, and the content the device lacks."""
         job = self.work.job
-        datasets = {c.data.directory for c in job.cells} if isinstance(job, RoundsJob) else set()
+        datasets = job.datasets()
         packed = {str(p): pack(p, _beside(p), data.measured if p in datasets else lambda name: True)
                   for p in shipped_paths(job)}
         keys = sorted({key for key, _ in packed.values()})

@@ -34,12 +34,27 @@ class Job:
     name: ClassVar[str]  # how a failure's reason names the job: 'convert: ...'
     function: ClassVar[str]  # 'module:function' that runs the job in its own process
     result: ClassVar[type]
+    # timed: it owns the clock of the machine its cell is placed on, so it runs in the executor's own process
+    # there (`function(job, workdir, logs, on_phase)`), the sessions it times in processes of their own
+    timed: ClassVar[bool] = False
     workspace: Workspace
 
     def reads(self) -> tuple[Path, ...]:
         """The files and folders made elsewhere (by the user, or by an earlier job) that the job reads: the
         machine running it must hold them."""
         return ()
+
+    def placed(self) -> Cell | None:
+        """The cell whose machine must run the job (the plan places each cell); None: any machine."""
+        return None
+
+    def ships(self) -> tuple[Path, ...]:
+        """What a machine other than this one needs to run the job: what it reads."""
+        return self.reads()
+
+    def datasets(self) -> set[Path]:
+        """The prepared datasets among them of which that machine needs only the measured split."""
+        return set()
 
 
 @dataclass(frozen=True)
@@ -135,6 +150,9 @@ class FinetuneJob(Job):
     def reads(self) -> tuple[Path, ...]:
         return self.source.path, self.data.directory
 
+    def placed(self) -> Cell:
+        return self.cell
+
 
 @dataclass(frozen=True)
 class ConvertJob(Job):
@@ -153,6 +171,9 @@ class ConvertJob(Job):
 
     def reads(self) -> tuple[Path, ...]:
         return self.source.path, self.data.directory
+
+    def placed(self) -> Cell:
+        return self.cell
 
 
 @dataclass(frozen=True)
@@ -194,8 +215,9 @@ class RoundsJob(Job):
     serve the answers the model's `requirements` ask (None: every cell to the same precision)."""
 
     name = "measure"
-    function = "bench_matrix.executors.rounds:measure_in_rounds"  # runs in the executor's process
+    function = "bench_matrix.executors.rounds:measure_in_rounds"
     result = MeasuredGroup
+    timed = True
     cells: tuple[MeasureJob, ...]
     logs: tuple[str, ...]  # each cell's log file name, in the folder of the work's log
     baseline: str | None = None
@@ -204,3 +226,14 @@ class RoundsJob(Job):
 
     def reads(self) -> tuple[Path, ...]:
         return tuple(dict.fromkeys(p for job in self.cells for p in job.reads()))
+
+    def placed(self) -> Cell:
+        """Its first cell's: a model's cells on one machine are timed together."""
+        return self.cells[0].cell
+
+    def ships(self) -> tuple[Path, ...]:
+        """What it reads and the artifacts it measures."""
+        return tuple(dict.fromkeys((*self.reads(), *(job.converted.directory for job in self.cells))))
+
+    def datasets(self) -> set[Path]:
+        return {job.data.directory for job in self.cells}

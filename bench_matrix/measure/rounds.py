@@ -19,6 +19,12 @@ T95 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228,
 
 RERUN = math.sqrt(2)  # a rerun's figure has the same uncertainty as this one: their difference sqrt(2) times
 PRIOR_DOF = 4  # the model's pooled process spread counts as this many degrees of freedom beside a cell's own
+STRAY = 0.15  # a window this far (log) above the fastest of its own and NEAR rounds either side, or APART
+APART = 0.25  # above the cell's fastest, and SPREADS times the windows' own spread, strayed: work no counter
+SPREADS = 5  # sees (the SMT sibling's other VM) slowed such by 30-70 % (metrics.md §5), slow drift less
+NEAR = 2
+FIT_STEPS = 50  # alternating means a round-and-process fit takes (it converges geometrically)
+STEPS = 8  # successive windows of one process it takes to tell a strayed window from the cell's own spread
 
 Slot = tuple[int, int]  # (round, process): one window of one of a cell's session processes
 
@@ -105,16 +111,41 @@ def _process_part(levels: Mapping[Slot, float], model: Spread | None) -> list[tu
 def window_spread(levels: Mapping[Slot, float]) -> float | None:
     """How much one window's level differs from the next one's of the same process, as a relative SD: the
     MAD of successive rounds' log differences × 1.4826 ÷ √2 (slow drift cancels); None under 3 windows."""
-    steps = [b - a for process in sorted({j for _, j in levels})
-             for a, b in itertools.pairwise([y for (_, j), y in sorted(levels.items()) if j == process])]
+    steps = _steps(levels)
     if len(steps) < 2:
         return None
-    return 1.4826 * float(np.median(np.abs(np.asarray(steps) - np.median(steps)))) / math.sqrt(2)
+    return 1.4826 * float(np.median(np.abs(steps - np.median(steps)))) / math.sqrt(2)
+
+
+def _steps(levels: Mapping[Slot, float]) -> np.ndarray:
+    """Successive rounds' log differences within each process."""
+    ordered = sorted(levels.items())
+    return np.asarray([b - a for process in sorted({j for _, j in levels})
+                       for a, b in itertools.pairwise([y for (_, j), y in ordered if j == process])])
 
 
 def log_levels(values: Mapping[Slot, float]) -> dict[Slot, float]:
     """The logarithms of positive finite values by slot (times and ratios are multiplicative)."""
     return {slot: math.log(v) for slot, v in values.items() if v > 0 and math.isfinite(v)}
+
+
+def steady(levels: Mapping[Slot, float], rate: bool = False) -> dict[Slot, float]:
+    """A cell's log levels (times; `rate`s: samples per second) without the windows a neighbour slowed: above
+    the fastest within NEAR rounds by STRAY, or the cell's fastest by APART (each at least SPREADS times the
+    windows' own spread); from STEPS steps between windows on."""
+    if len(_steps(levels)) < STEPS:
+        return dict(levels)
+    sign = -1.0 if rate else 1.0
+    fastest = {r: min(sign * y for (near, _), y in levels.items() if abs(near - r) <= NEAR)
+               for r in {r for r, _ in levels}}
+    local = {slot: sign * y - fastest[slot[0]] for slot, y in levels.items()}
+    overall = {slot: sign * y - min(sign * v for v in levels.values()) for slot, y in levels.items()}
+    # the windows' own spread: the MAD of how far those within STRAY are above their fastest (the slowed
+    # ones, or a step between the two kinds, would swell any spread that counts them)
+    near = np.asarray([distance for distance in local.values() if distance <= STRAY])
+    noise = SPREADS * 1.4826 * float(np.median(np.abs(near - np.median(near))))
+    return {slot: y for slot, y in levels.items()
+            if local[slot] <= max(STRAY, noise) and overall[slot] <= max(APART, noise)}
 
 
 def level_interval(value: float, levels: Mapping[Slot, float], model: Spread | None,
@@ -149,13 +180,13 @@ def medians(series: Mapping[Slot, np.ndarray]) -> dict[Slot, float]:
 
 
 def p50_interval(series: Mapping[Slot, np.ndarray], model: Spread | None = None) -> Interval | None:
-    """The pooled median of every window with the interval a rerun's would fall in: `level_interval`'s of the
-    per-window medians, RERUN times as wide."""
+    """The pooled median of every window (the stored samples') with the interval a rerun's would fall in:
+    `level_interval`'s of the steady per-window medians, RERUN times as wide."""
     if not series:
         return None
     pooled_median = float(np.median(np.concatenate([np.asarray(v, dtype=np.float64)
                                                     for v in series.values()])))
-    return level_interval(pooled_median, log_levels(medians(series)), model, RERUN)
+    return level_interval(pooled_median, steady(log_levels(medians(series))), model, RERUN)
 
 
 def level_width(p50: Interval) -> float:
@@ -167,21 +198,39 @@ def level_width(p50: Interval) -> float:
 def speedup(baseline: Mapping[Slot, float], cell: Mapping[Slot, float],
             model: Spread | None = None) -> Interval | None:
     """Baseline time ÷ cell time from their per-window medians, paired by round (`paired_interval`)."""
-    return paired_interval(log_levels(baseline), log_levels(cell), model)
+    return paired_interval(steady(log_levels(baseline)), steady(log_levels(cell)), model)
 
 
 def rate_interval(rates: Mapping[Slot, float], samples: float, seconds: float,
                   model: Spread | None = None) -> Interval | None:
     """A throughput: `samples` ÷ `seconds` over every kept window, with the interval a rerun's would fall in
     (from the per-window rates, as for the p50)."""
-    return level_interval(samples / seconds, log_levels(rates), model, RERUN) if seconds > 0 else None
+    return level_interval(samples / seconds, steady(log_levels(rates), rate=True), model, RERUN) \
+        if seconds > 0 else None
 
 
 def _round_means(levels: Mapping[Slot, float]) -> dict[int, float]:
+    """Each round's mean level over the cell's processes; where a round lacks some, rounds and processes are
+    fitted as two additive effects (alternating means), so a missing process does not move its round."""
+    means = _plain_means(levels)
+    if len({len(ys) for ys in _by_round(levels).values()}) <= 1:
+        return means
+    for _ in range(FIT_STEPS):
+        offsets = _offsets(levels, means)
+        middle = float(np.mean(list(offsets.values())))
+        means = _plain_means({(r, j): y - offsets[j] + middle for (r, j), y in levels.items()})
+    return means
+
+
+def _by_round(levels: Mapping[Slot, float]) -> dict[int, list[float]]:
     by_round: dict[int, list[float]] = {}
     for (r, _), y in levels.items():
         by_round.setdefault(r, []).append(y)
-    return {r: float(np.mean(ys)) for r, ys in by_round.items()}
+    return by_round
+
+
+def _plain_means(levels: Mapping[Slot, float]) -> dict[int, float]:
+    return {r: float(np.mean(ys)) for r, ys in _by_round(levels).items()}
 
 
 def _offsets(levels: Mapping[Slot, float], means: Mapping[int, float]) -> dict[int, float]:

@@ -19,7 +19,8 @@ from typing import Protocol
 import numpy as np
 
 from bench_matrix.measure.rounds import (Interval, Slot, Spread, level_width, log_levels, medians,
-                                         p50_interval, pooled, process_spread, speedup)
+                                         p50_interval, pooled, process_spread, speedup,
+                                         steady)
 
 LATENCY = "latency"  # the kind of window whose intervals decide when the rounds stop
 
@@ -128,7 +129,7 @@ def spread(cells: Iterable[Timed], kind: str = LATENCY, rate: bool = False) -> S
         clean = timed.windows(kind, clean=True)
         return rates(clean) if rate else medians({slot: w.durations_ms for slot, w in clean.items()})
 
-    return pooled(process_spread(log_levels(levels(t))) for t in cells)
+    return pooled(process_spread(steady(log_levels(levels(t)), rate)) for t in cells)
 
 
 def rates(windows: Mapping[Slot, Window]) -> dict[Slot, float]:

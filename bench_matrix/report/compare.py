@@ -47,6 +47,8 @@ DEFAULT_THRESHOLDS = {"p50": 0.20, "p99": 0.50, "throughput": 0.20, "size": 0.01
 # With --remeasure, p50 is the new artifact's time ÷ its base twin's paired by round: its interval does the
 # work (a few % wide), and a change counts beyond this (benchmarks/gate_rates.py measured what it catches).
 REMEASURED_P50 = 0.05
+UNPAIRED = ("its twins shared fewer than 2 rounds free of windows a neighbour slowed: the machine was too "
+            "busy to pair them; remeasure when it is quieter, or with more `timing_budget_s`")
 DEFAULT_ACCURACY_THRESHOLDS = {"relative": 0.05, "absolute": 0.005}  # error metrics / fraction metrics
 ALPHA = 0.05
 TEST = "Mann-Whitney U (two-sided) for p50 and throughput, Fisher's exact test on the slowest 1 % for p99"
@@ -305,10 +307,12 @@ def _twinned(pair: _Pair, limits: Mapping[str, float]) -> MetricChange | None:
     new p50 shown: the base's times that ratio): changed when its interval excludes 1, past the threshold."""
     twin = pair.twin
     base = figure(pair.before, lambda m: m.latency and m.latency.p50) if pair.before else None
-    if twin is None or twin.value is None or not twin.ci or base is None:
+    if twin is None or base is None:
         return None
-    judge = _MetricJudge("p50", "latency_ms.p50 (paired)", base, base / twin.value, True,
-                         limits["p50_remeasured"], "lower")
+    judge = _MetricJudge("p50", "latency_ms.p50 (paired)", base, base / twin.value if twin.value else None,
+                         True, limits["p50_remeasured"], "lower")
+    if twin.value is None or not twin.ci:
+        return judge.not_comparable(UNPAIRED)
     return judge.judged(significant=not twin.ci[0] <= 1.0 <= twin.ci[-1])
 
 

@@ -14,7 +14,8 @@ import numpy as np
 
 from bench_matrix.measure.interference import Limits
 from bench_matrix.measure.rounds import Interval, Slot, Spread, level_width, moderated, p50_interval
-from bench_matrix.measure.rounds import log_levels, medians, process_spread, rate_interval, window_spread
+from bench_matrix.measure.rounds import (log_levels, medians, process_spread, rate_interval, steady,
+                                         window_spread)
 from bench_matrix.measure.schedule import LATENCY, RoundsSettings, Timed, Window, paired, rates
 from bench_matrix.measure.stats import latency_summary, pack_samples
 from bench_matrix.scenarios.base import Outcome
@@ -49,8 +50,9 @@ def _rounds(timed: Timed, settings: RoundsSettings, series: dict[Slot, np.ndarra
             ratio: Interval | None) -> tuple[dict[str, Any], Width | None]:
     """The record's `rounds` (how many, why they stopped, the precision asked for and the width reached: the
     wider of the run's p50 and the speed-up, the answer still open, the processes and how they differed, how
-    one window differed from the next), and the width reached with its floor."""
-    levels = log_levels(medians(series))
+    one window differed from the next, the windows left out as `strayed`), the width reached, its floor."""
+    every = log_levels(medians(series))
+    levels = steady(every)
     own, noise = moderated(process_spread(levels), model), window_spread(levels)
     processes = len({j for _, j in timed.windows(LATENCY)})
     p50 = p50_interval(series, model)
@@ -61,7 +63,7 @@ def _rounds(timed: Timed, settings: RoundsSettings, series: dict[Slot, np.ndarra
     return ({"rounds": timed.rounds(), "stop": timed.stop, "target": settings.target, "asked": settings.asked,
              "reached": round(reached.reached, 6) if reached else None, "open": timed.open,
              "window_spread": round(noise, 6) if noise is not None else None, "window_s": settings.window_s,
-             "processes": processes, "visits": round(timed.visits(), 3),
+             "processes": processes, "visits": round(timed.visits(), 3), "strayed": len(every) - len(levels),
              "process_spread": round(spread, 6) if own else None,
              "model_spread": round(model.relative, 6) if model else None}, reached)
 
