@@ -121,7 +121,9 @@ class Remeasure(Runner):
         """Both artifacts of the cell, as they are (no fine-tuning, no conversion), each scored against its
         side's own baseline."""
         model, settings = ready.model, self.matrix.settings
-        settings = replace(settings, processes=max(settings.processes, TWIN_PROCESSES))
+        processes = max(settings.processes, TWIN_PROCESSES)  # and as many rounds as the run's processes had:
+        settings = replace(settings, processes=processes,  # the budget grows with the processes
+                           timing_budget_s=settings.timing_budget_s * processes / settings.processes)
         measuring = []
         references = self.references.get(model.spec.name, {})
         for side, folder in zip((BASE, NEW), self.twins.folders[p.cell.key]):

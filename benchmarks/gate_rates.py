@@ -4,7 +4,8 @@ quiet and with a CPU-bound process on the other core (docs/results.md §2, --rem
 Ten models, each a dense ONNX network; run "base" with one width, run "slow" with a width calibrated here to
 be about 10 % slower (timed side by side in this process first). Each comparison remeasures the ten twins in the
 same rounds: `compare base base` gives ten unchanged pairs, `compare base slow` ten +10 % ones; --repeats
-comparisons of each. The last line: `unchanged: A false alarms of N; +10 %: C caught of N` per condition.
+comparisons of each. The last line: `unchanged: A false alarms of N; +10 %: C caught of N; not comparable: U`
+(a false alarm: worse or better; not comparable: twins the rounds could not pair, which fail no gate).
 Targets: at most 1 false alarm in 20 unchanged pairs, +10 % caught in at least 19 of 20.
 
     .venv/bin/python benchmarks/gate_rates.py [--repeats 2] [--hog] [--workdir DIR]
@@ -108,6 +109,13 @@ def verdicts(workdir: Path, new: str) -> list[tuple[str, float]]:
     return [(c["metrics"]["p50"]["verdict"], c["metrics"]["p50"]["change"]) for c in found["cells"]]
 
 
+def shown(verdict: str, change: float | None, expected: str) -> str:
+    """A pair's change, marked where its verdict is not the one expected."""
+    if change is None:
+        return "n/c"
+    return f"{change:+.1%}" + ("" if verdict == expected else "!")
+
+
 def hog() -> subprocess.Popen:
     """A CPU-bound process on the lowest usable CPU (the cells are pinned to the highest)."""
     proc = subprocess.Popen([sys.executable, "-c", "while True: pass"])
@@ -134,13 +142,14 @@ def main() -> None:
         if competitor is not None:
             competitor.kill()
     changes = [c for _, c in slower if c is not None]
-    print(f"unchanged pairs' changes: {', '.join(f'{c:+.1%}' for _, c in same if c is not None)}")
-    print(f"+10 % pairs' changes: {', '.join(f'{c:+.1%}' for c in changes)} "
-          f"(median {statistics.median(changes):+.1%})")
-    alarms = sum(v != "unchanged" for v, _ in same)
+    print(f"unchanged pairs' changes: {', '.join(shown(v, c, 'unchanged') for v, c in same)}")
+    print(f"+10 % pairs' changes: {', '.join(shown(v, c, 'worse') for v, c in slower)} "
+          f"(median {statistics.median(changes):+.1%}; ! judged otherwise, n/c: not comparable)")
+    alarms = sum(v in ("worse", "better") for v, _ in same)
     caught = sum(v == "worse" for v, _ in slower)
+    unpaired = sum(c is None for _, c in same + slower)
     print(f"{'under --hog' if args.hog else 'quiet'}: unchanged: {alarms} false alarms of {len(same)}; "
-          f"+10 %: {caught} caught of {len(slower)}")
+          f"+10 %: {caught} caught of {len(slower)}; not comparable: {unpaired}")
 
 
 if __name__ == "__main__":
