@@ -136,8 +136,11 @@ def steady(levels: Mapping[Slot, float], rate: bool = False) -> dict[Slot, float
     if len(_steps(levels)) < STEPS:
         return dict(levels)
     sign = -1.0 if rate else 1.0
-    fastest = {r: min(sign * y for (near, _), y in levels.items() if abs(near - r) <= NEAR)
-               for r in {r for r, _ in levels}}
+    by_round: dict[int, float] = {}
+    for (r, _), y in levels.items():
+        by_round[r] = min(by_round.get(r, math.inf), sign * y)
+    fastest = {r: min(by_round.get(near, math.inf) for near in range(r - NEAR, r + NEAR + 1))
+               for r in by_round}
     local = {slot: sign * y - fastest[slot[0]] for slot, y in levels.items()}
     overall = {slot: sign * y - min(sign * v for v in levels.values()) for slot, y in levels.items()}
     # the windows' own spread: the MAD of how far those within STRAY are above their fastest (the slowed
