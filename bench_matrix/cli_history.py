@@ -80,8 +80,8 @@ def _runs(args: argparse.Namespace, console) -> int:
 
 
 def _compare(args: argparse.Namespace, console) -> int:
-    from bench_matrix.report.compare import compare, parse_threshold
-    from bench_matrix.report.compare_view import comparison_json, comparison_markdown, print_comparison
+    from bench_matrix.report.analysis.compare import compare, parse_threshold
+    from bench_matrix.report.render.compare_view import comparison_json, comparison_markdown, print_comparison
 
     if not 0 < args.alpha < 1:
         raise UserError(f"--alpha {args.alpha}: give a significance level between 0 and 1, such as 0.05")
@@ -116,7 +116,7 @@ def side(spec: str, store_path: Path):
     """One side of a comparison (with its models' tasks): a run of `store_path`, a store file or
     STORE@RUN."""
     from bench_matrix.report import View, load
-    from bench_matrix.report.compare import Side
+    from bench_matrix.report.analysis.compare import Side
 
     path, run = _split(spec, store_path)
     loaded = load(path, View(run=run), with_samples=True)

@@ -12,7 +12,7 @@ from bench_matrix.errors import UserError
 if TYPE_CHECKING:
     from bench_matrix.matrix.spec import Matrix
     from bench_matrix.report import Judging
-    from bench_matrix.report.summary import Report
+    from bench_matrix.report.analysis.summary import Report
     from bench_matrix.store import ResultStore
 
 REQUIRE_HELP = ("a requirement over the matrix's, KEY=VALUE: p50_ms=50, max_drop=5%%, top1.min=0.9, "
@@ -45,7 +45,7 @@ def judging(args: argparse.Namespace) -> Judging:
 
 def gate(report: Report, errors: Any) -> int:
     """The --check verdict: 1 (naming them) when some judged model and target has no passing cell, else 0."""
-    from bench_matrix.report.judging import unmet
+    from bench_matrix.report.analysis.judging import unmet
 
     judged = [m for m in report.models if m.requirements is not None]
     if not judged:
@@ -69,7 +69,7 @@ def gate(report: Report, errors: Any) -> int:
 def remember(store: ResultStore, matrix: Matrix) -> None:
     """Store where the matrix is and what it requires: the report reads it again from there, else uses
     this."""
-    from bench_matrix.report.judging import SCOPE, stored
+    from bench_matrix.report.analysis.judging import SCOPE, stored
 
     store.put_fact(SCOPE, str(matrix.path), stored(matrix.path, matrix.requirements))
 
@@ -77,7 +77,7 @@ def remember(store: ResultStore, matrix: Matrix) -> None:
 def print_run_verdict(results: Path, matrix: Matrix, overrides: dict[str, Any], console: Any) -> None:
     """The Verdict section for the matrix's models, after a run (with its --require)."""
     from bench_matrix.report import Judging, View, load_judged
-    from bench_matrix.report.terminal import print_verdict
+    from bench_matrix.report.render.terminal import print_verdict
 
     names = frozenset(m.name for m in matrix.models)
     try:

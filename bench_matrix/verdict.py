@@ -17,7 +17,7 @@ from bench_matrix.registry import scenarios
 PASS, FAIL, UNCERTAIN = "pass", "fail", "uncertain"
 MIB = 2**20
 HEADLINE_NAMES = {"mse": "MSE", "top1": "top-1", "cosine_similarity": "cosine similarity"}
-PLAUSIBLE = Limit("plausible", "max", 0.0)  # what an implausible record fails (report/plausible.py)
+PLAUSIBLE = Limit("plausible", "max", 0.0)  # what an implausible record fails (report/analysis/plausible.py)
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from bench_matrix.report.summary import metric
+from bench_matrix.report.analysis.summary import metric
 from bench_matrix.store import CellRecord, ResultStore
 
 SHORT = 110  # characters of a reason shown

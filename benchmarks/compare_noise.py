@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench_matrix.report.compare import DEFAULT_THRESHOLDS, METRICS
+from bench_matrix.report.analysis.compare import DEFAULT_THRESHOLDS, METRICS
 from interference import MATRIX
 
 

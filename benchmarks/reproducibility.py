@@ -28,8 +28,8 @@ import tempfile
 from pathlib import Path
 
 from bench_matrix.report import load_judged
-from bench_matrix.report.judging import Judging
-from bench_matrix.report.summary import ModelSummary, disturbed_phases, wide_phases
+from bench_matrix.report.analysis.judging import Judging
+from bench_matrix.report.analysis.summary import ModelSummary, disturbed_phases, wide_phases
 from bench_matrix.store import CellRecord, ResultStore
 
 # the PilotNet TensorFlow variant through TensorFlow (its baseline), TFLite, ONNX Runtime and OpenVINO

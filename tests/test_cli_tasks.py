@@ -11,7 +11,7 @@ import pytest
 import task_models
 from conftest import FAST_SETTINGS, TESTS, cli
 
-from bench_matrix.report.columns import sig
+from bench_matrix.report.render.columns import sig
 
 pytestmark = pytest.mark.slow
 SPLIT = "split: {train: 0.5, calibration: 0.25, test: 0.25}"

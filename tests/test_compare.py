@@ -12,7 +12,8 @@ from rich.console import Console
 
 from bench_matrix.cell import Cell
 from bench_matrix.errors import UserError
-from bench_matrix.report.compare import (
+from bench_matrix.measurement import Speedup
+from bench_matrix.report.analysis.compare import (
     DEFAULT_THRESHOLDS,
     NOT_COMPARABLE,
     TEST,
@@ -22,8 +23,7 @@ from bench_matrix.report.compare import (
     compare,
     parse_threshold,
 )
-from bench_matrix.report.compare_view import comparison_json, comparison_markdown, print_comparison
-from bench_matrix.measurement import Speedup
+from bench_matrix.report.render.compare_view import comparison_json, comparison_markdown, print_comparison
 from bench_matrix.store import CellRecord
 
 ORT = Cell("pilotnet", "pytorch", "onnxruntime", "none", "fp32", "cpu")

@@ -15,14 +15,14 @@ from test_report import MIB, _metrics, _record
 
 from bench_matrix.cell import Cell
 from bench_matrix.report import write_report
-from bench_matrix.report.columns import model_columns
-from bench_matrix.report.text import NO_REASON, by_reason, skip_reason
-from bench_matrix.report.html import page, write_html
-from bench_matrix.report.html_parts import sort_value
-from bench_matrix.report.markdown import model_page, page_name, write_pages
-from bench_matrix.report.plots import Plot
-from bench_matrix.report.summary import Report, summarize
-from bench_matrix.report.terminal import print_report
+from bench_matrix.report.analysis.summary import Report, summarize
+from bench_matrix.report.render.columns import model_columns
+from bench_matrix.report.render.html import page, write_html
+from bench_matrix.report.render.html_parts import sort_value
+from bench_matrix.report.render.markdown import model_page, page_name, write_pages
+from bench_matrix.report.render.plots import Plot
+from bench_matrix.report.render.terminal import print_report
+from bench_matrix.report.render.text import NO_REASON, by_reason, skip_reason
 from bench_matrix.store import CellRecord, ResultStore
 
 NAME = '<b>evil</b> & "q"'  # user data: must show as text, never as markup

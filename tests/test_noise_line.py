@@ -12,12 +12,12 @@ from typing import Any
 from rich.console import Console
 
 from bench_matrix.cell import Cell
-from bench_matrix.report import html, markdown
-from bench_matrix.report.export import report_json
-from bench_matrix.report.judging import Judging, judged
-from bench_matrix.report.noise import noise
-from bench_matrix.report.summary import Report, summarize
-from bench_matrix.report.terminal import print_report
+from bench_matrix.report.analysis.judging import Judging, judged
+from bench_matrix.report.analysis.noise import noise
+from bench_matrix.report.analysis.summary import Report, summarize
+from bench_matrix.report.render import html, markdown
+from bench_matrix.report.render.export import report_json
+from bench_matrix.report.render.terminal import print_report
 from bench_matrix.store import CellRecord
 
 BASE = Cell("m", "pytorch", "pytorch", "none", "fp32", "cpu")

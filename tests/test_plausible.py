@@ -10,11 +10,11 @@ from typing import Any
 from rich.console import Console
 
 from bench_matrix.cell import Cell
-from bench_matrix.report import html, markdown
-from bench_matrix.report.judging import Judging, judged
-from bench_matrix.report.plausible import implausible
-from bench_matrix.report.summary import Report, summarize
-from bench_matrix.report.terminal import print_report
+from bench_matrix.report.analysis.judging import Judging, judged
+from bench_matrix.report.analysis.plausible import implausible
+from bench_matrix.report.analysis.summary import Report, summarize
+from bench_matrix.report.render import html, markdown
+from bench_matrix.report.render.terminal import print_report
 from bench_matrix.store import CellRecord
 
 PARAMS = 252_236

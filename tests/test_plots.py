@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from bench_matrix.cell import Cell
-from bench_matrix.report.pareto import Box, pareto_optimal, place_labels, points, reference_sizes
-from bench_matrix.report.plots import file_stem, latency_figure, model_plots, pareto_figure
-from bench_matrix.report.sections import section_plots
-from bench_matrix.report.summary import ModelSummary, summarize
+from bench_matrix.report.analysis.pareto import Box, pareto_optimal, place_labels, points, reference_sizes
+from bench_matrix.report.analysis.summary import ModelSummary, summarize
+from bench_matrix.report.render.plots import file_stem, latency_figure, model_plots, pareto_figure
+from bench_matrix.report.render.sections import section_plots
 from bench_matrix.store import CellRecord
 
 MIB = 2**20
@@ -217,7 +217,7 @@ def test_equal_cells_without_size_or_interval_still_chart(tmp_path: Path) -> Non
 
 
 def test_importing_the_plots_does_not_import_matplotlib() -> None:
-    code = "import sys, bench_matrix.report.plots; print('matplotlib' in sys.modules)"
+    code = "import sys, bench_matrix.report.render.plots; print('matplotlib' in sys.modules)"
     found = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert found.stdout.strip() == "False"
 

@@ -15,7 +15,7 @@ from rich.console import Console
 from bench_matrix.cell import Cell
 from bench_matrix.errors import UserError
 from bench_matrix.report import load, write_report
-from bench_matrix.report.export import CSV_COLUMNS
+from bench_matrix.report.render.export import CSV_COLUMNS
 from bench_matrix.store import CellRecord, ResultStore, Status
 
 MIB = 2**20
@@ -291,7 +291,7 @@ def test_a_cell_flagged_for_interference_is_marked_in_every_format(tmp_path: Pat
 
 
 def test_the_environment_names_every_backends_libraries_plugins_included():
-    from bench_matrix.report.summary import environment
+    from bench_matrix.report.analysis.summary import environment
     from bench_matrix.store import CellRecord
 
     cell = Cell("m", "onnx", "openvino", "none", "fp32", "npu")
@@ -301,7 +301,7 @@ def test_the_environment_names_every_backends_libraries_plugins_included():
 
 
 def test_the_environment_shows_the_cpu_frequency_policy_in_one_line_and_warns_when_it_differs():
-    from bench_matrix.report.summary import environment
+    from bench_matrix.report.analysis.summary import environment
     from bench_matrix.store import CellRecord
 
     hidden = {"scaling_driver": "not exposed", "scaling_governor": "not exposed", "boost": "not exposed",
@@ -334,7 +334,7 @@ def test_the_caption_says_how_the_cells_were_timed(facts: list[dict], said: str)
     from types import SimpleNamespace
 
     from bench_matrix.measurement import Measurement
-    from bench_matrix.report.text import timing_line
+    from bench_matrix.report.render.text import timing_line
 
     rows = [SimpleNamespace(record=SimpleNamespace(metrics=Measurement.from_json({"rounds": f})))
             for f in facts]

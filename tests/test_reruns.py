@@ -10,8 +10,8 @@ from rich.console import Console
 
 from bench_matrix.cell import Cell
 from bench_matrix.report import load, write_report
-from bench_matrix.report.reruns import Rerun, reruns
-from bench_matrix.report.text import caption
+from bench_matrix.report.analysis.reruns import Rerun, reruns
+from bench_matrix.report.render.text import caption
 from bench_matrix.store import CellRecord, ResultStore
 
 CELLS = [Cell("tiny", "onnx", backend, "none", precision, "cpu")

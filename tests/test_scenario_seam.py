@@ -12,8 +12,10 @@ GENERIC = ["runner.py", "plan.py", "cell.py", "jobs/__init__.py", "jobs/measure.
            "scenarios/base.py", "scenarios/latency.py", "verdict.py", "ranking.py", "registry.py",
            *(str(p.relative_to(ROOT)) for p in sorted(ROOT.glob("executors/*.py"))),
            *(str(p.relative_to(ROOT)) for p in sorted(ROOT.glob("store*.py"))),
-           *(f"report/{name}.py" for name in ("__init__", "html", "markdown", "terminal", "plots", "sections",
-                                              "recommend", "judging", "verdict_view", "pareto_marks"))]
+           "report/__init__.py",
+           *(f"report/render/{name}.py" for name in ("html", "markdown", "terminal", "plots", "sections",
+                                                     "verdict_view", "pareto_marks")),
+           *(f"report/analysis/{name}.py" for name in ("recommend", "judging"))]
 SCENARIO = ("closed_loop", "closed loop", "closedloop", " laps", "simulator")
 WORKLOAD = ("driving", "circuit")
 

@@ -14,7 +14,7 @@ from bench_matrix.cell import Cell
 from bench_matrix.errors import MatrixError, UserError
 from bench_matrix.matrix.require import parse_require, read_file
 from bench_matrix.matrix.requirements import Declared, Requirements
-from bench_matrix.report.recommend import Candidate, recommend
+from bench_matrix.report.analysis.recommend import Candidate, recommend
 from bench_matrix.store import CellRecord
 from bench_matrix.verdict import FAIL, PASS, UNCERTAIN, judge
 
@@ -244,11 +244,11 @@ def test_the_verdict_counts_the_cells_that_failed_to_run_in_every_format(tmp_pat
     """'Passing 2 of 4, 2 failed': failed cells are counted beside the judged ones, in every format."""
     from rich.console import Console
 
-    from bench_matrix.report import html, markdown
-    from bench_matrix.report.export import report_json
-    from bench_matrix.report.judging import Judging, judged
-    from bench_matrix.report.summary import summarize
-    from bench_matrix.report.terminal import print_verdict
+    from bench_matrix.report.analysis.judging import Judging, judged
+    from bench_matrix.report.analysis.summary import summarize
+    from bench_matrix.report.render import html, markdown
+    from bench_matrix.report.render.export import report_json
+    from bench_matrix.report.render.terminal import print_verdict
 
     ok = [record("onnxruntime", **timed(1.0), size_bytes=MIB),
           record("openvino", **timed(2.0), size_bytes=MIB)]

@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from bench_matrix.errors import UserError
-from bench_matrix.report.judging import SCOPE, Judging, judged
-from bench_matrix.report.summary import Report, summarize
+from bench_matrix.report.analysis.judging import SCOPE, Judging, judged
+from bench_matrix.report.analysis.summary import Report, summarize
 from bench_matrix.store import CellRecord, ResultStore, RunInfo
 
 if TYPE_CHECKING:
@@ -90,7 +90,7 @@ def load(store_path: str | Path, view: View = View(), with_samples: bool = False
 
 def load_judged(store_path: str | Path, view: View = View(), judging: Judging = Judging(),
                 with_samples: bool = False) -> Loaded:
-    """`load`, with each model judged against its requirements (report/judging.py)."""
+    """`load`, with each model judged against its requirements (report/analysis/judging.py)."""
     loaded = load(store_path, view, with_samples)
     return replace(loaded, report=judged(loaded.report, loaded.requirements, judging))
 
@@ -130,12 +130,12 @@ def write_report(store_path: str | Path, fmt: str, out_dir: str | Path, console:
 def write_loaded(loaded: Loaded, fmt: str, out: Path, console: Console) -> list[Path]:
     """Write a judged report in `fmt`; return the files written."""
     if fmt == "json":
-        from bench_matrix.report.export import report_json
+        from bench_matrix.report.render.export import report_json
         sys.stdout.write(report_json(loaded.records, loaded.report))
         sys.stdout.flush()
         return []
     if fmt == "csv":
-        from bench_matrix.report.export import write_csv
+        from bench_matrix.report.render.export import write_csv
         paths = [write_csv(loaded.records, loaded.report, out / "results.csv")]
     else:
         paths = _pages(loaded, fmt, out, console)
@@ -150,16 +150,16 @@ def write_loaded(loaded: Loaded, fmt: str, out: Path, console: Console) -> list[
 
 def _pages(loaded: Loaded, fmt: str, out: Path, console: Console) -> list[Path]:
     """Plots, then the Markdown pages and/or the HTML file that embed them."""
-    from bench_matrix.report.html import write_html
-    from bench_matrix.report.markdown import write_pages
-    from bench_matrix.report.plots import model_plots
-    from bench_matrix.report.sections import section_plots
+    from bench_matrix.report.render.html import write_html
+    from bench_matrix.report.render.markdown import write_pages
+    from bench_matrix.report.render.plots import model_plots
+    from bench_matrix.report.render.sections import section_plots
 
     out.mkdir(parents=True, exist_ok=True)
     plots = {m.name: [*model_plots(m, loaded.samples, out / "plots"), *section_plots(m, out / "plots")]
              for m in loaded.report.models}
     if fmt == "table":
-        from bench_matrix.report.terminal import print_report
+        from bench_matrix.report.render.terminal import print_report
         print_report(loaded.report, console)
     paths = write_pages(loaded.report, out, plots) if fmt != "html" else []
     return [*paths, write_html(loaded.report, plots, out / "report.html")] if fmt != "md" else paths

@@ -46,7 +46,7 @@ class Scenario:
     schema: ClassVar[dict[str, Any]]  # JSON Schema of the section
     # requirement keys it adds under its name in `requirements`: key -> ("min" or "max", what the figure is)
     requirements: ClassVar[dict[str, tuple[str, str]]] = {}
-    section: ClassVar[str | None] = None  # "module:NAME" of its report Section (report/sections.py)
+    section: ClassVar[str | None] = None  # "module:NAME" of its report Section (report/render/sections.py)
 
     def read(self, data: dict[str, Any], loading: Loading) -> Any:
         """The typed section from its schema-valid data; problems go to `loading.report`."""

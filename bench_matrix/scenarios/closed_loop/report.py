@@ -8,10 +8,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from bench_matrix.report.columns import DASH, fixed, mib, sig
-from bench_matrix.report.html_parts import esc, table
 from bench_matrix.measurement import Measurement
-from bench_matrix.report.summary import ModelSummary, figure, number
+from bench_matrix.report.analysis.summary import ModelSummary, figure, number
+from bench_matrix.report.render.columns import DASH, fixed, mib, sig
+from bench_matrix.report.render.html_parts import esc, table
 from bench_matrix.store import CellRecord
 
 MODE_NAMES = {"lock_step": "lock-step", "real_time": "real-time"}

@@ -8,9 +8,9 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.report.plots import Plot
-from bench_matrix.report.sections import Section
-from bench_matrix.report.summary import ModelSummary
+from bench_matrix.report.analysis.summary import ModelSummary
+from bench_matrix.report.render.plots import Plot
+from bench_matrix.report.render.sections import Section
 from bench_matrix.scenarios.closed_loop.report import (MODE_NAMES, driven_records, html_parts, markdown_lines,
                                                       plot_name, print_terminal)
 from bench_matrix.store import CellRecord

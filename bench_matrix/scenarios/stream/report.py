@@ -6,10 +6,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from bench_matrix.report.columns import DASH, Column, fixed, sig
-from bench_matrix.report.html_parts import esc, table
-from bench_matrix.report.sections import Section
-from bench_matrix.report.summary import ModelSummary, Row, number
+from bench_matrix.report.analysis.summary import ModelSummary, Row, number
+from bench_matrix.report.render.columns import DASH, Column, fixed, sig
+from bench_matrix.report.render.html_parts import esc, table
+from bench_matrix.report.render.sections import Section
 
 INTRO = ("Each cell's own artifact served frames arriving on a fixed clock (docs/stream.md defines every "
          "figure): a frame is due by the next frame's arrival; with policy skip the frames that arrive while "

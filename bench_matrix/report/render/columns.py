@@ -9,7 +9,7 @@ from typing import Any
 
 from bench_matrix.measure.metrics import DIRECTIONS, SNR_LIMIT_DB
 from bench_matrix.measurement import Measurement
-from bench_matrix.report.summary import (
+from bench_matrix.report.analysis.summary import (
     ModelSummary,
     Row,
     disturbed_phases,

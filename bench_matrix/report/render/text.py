@@ -7,8 +7,8 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from bench_matrix.measurement import RoundsFacts
-from bench_matrix.report.columns import DASH, DELTA_NAMES, EMULATED, fixed, percent, sig, times
-from bench_matrix.report.summary import ModelSummary, Report, emulated, metric, number, p50
+from bench_matrix.report.analysis.summary import ModelSummary, Report, emulated, metric, number, p50
+from bench_matrix.report.render.columns import DASH, DELTA_NAMES, EMULATED, fixed, percent, sig, times
 from bench_matrix.store import CellRecord
 from bench_matrix.tensors import axes_text, shape_text
 
@@ -79,7 +79,7 @@ def timing_line(model: ModelSummary) -> str:
 
 def rerun_line(model: ModelSummary) -> str:
     """How far other runs on the same hosts put the same artifacts' p50s, and how many of them this run's p50
-    intervals held; "" when no other run timed them (report/reruns.py)."""
+    intervals held; "" when no other run timed them (report/analysis/reruns.py)."""
     if not model.reruns:
         return ""
     moves = sorted(r.move for r in model.reruns)

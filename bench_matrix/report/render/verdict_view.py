@@ -7,9 +7,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from bench_matrix.ranking import FIGURES
-from bench_matrix.report.columns import EMULATED, sig
-from bench_matrix.report.recommend import Recommendation
-from bench_matrix.report.summary import ModelSummary, emulated
+from bench_matrix.report.analysis.recommend import Recommendation
+from bench_matrix.report.analysis.summary import ModelSummary, emulated
+from bench_matrix.report.render.columns import EMULATED, sig
 from bench_matrix.verdict import UNCERTAIN, figure
 
 INTRO = ("Each ok cell is judged against its model's requirements: pass; fail, naming each requirement "

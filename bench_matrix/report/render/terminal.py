@@ -8,7 +8,9 @@ from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
 
-from bench_matrix.report.columns import (
+from bench_matrix.report.analysis.noise import noise
+from bench_matrix.report.analysis.summary import Environment, ModelSummary, Report, headline
+from bench_matrix.report.render.columns import (
     ACCURACY,
     DIFFERENT_ENVIRONMENTS,
     SIZE,
@@ -19,7 +21,8 @@ from bench_matrix.report.columns import (
     model_columns,
     shown,
 )
-from bench_matrix.report.text import (
+from bench_matrix.report.render.sections import sections
+from bench_matrix.report.render.text import (
     accuracy_line,
     baseline_note,
     best_text,
@@ -29,9 +32,7 @@ from bench_matrix.report.text import (
     run_line,
     skip_reason,
 )
-from bench_matrix.report.noise import noise
-from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
-from bench_matrix.report.verdict_view import (
+from bench_matrix.report.render.verdict_view import (
     HEADERS,
     NONE_PASSES,
     NUMERIC,
@@ -40,7 +41,6 @@ from bench_matrix.report.verdict_view import (
     requirement_lines,
     rows,
 )
-from bench_matrix.report.sections import sections
 from bench_matrix.store import CellRecord
 
 # Ways to lay out the results columns, tried in order until every table fits the console.

@@ -10,8 +10,13 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from urllib.parse import quote
 
-from bench_matrix.report.columns import DASH, DIFFERENT_ENVIRONMENTS, Column, cell_names, model_columns, shown
-from bench_matrix.report.text import (
+from bench_matrix.report.analysis.noise import noise
+from bench_matrix.report.analysis.summary import Environment, ModelSummary, Report, headline
+from bench_matrix.report.render.columns import (DASH, DIFFERENT_ENVIRONMENTS, Column, cell_names, model_columns,
+                                                shown)
+from bench_matrix.report.render.plots import Plot
+from bench_matrix.report.render.sections import sections
+from bench_matrix.report.render.text import (
     HEADLINE_NOTE,
     accuracy_line,
     baseline_note,
@@ -23,12 +28,8 @@ from bench_matrix.report.text import (
     run_line,
     skip_reason,
 )
-from bench_matrix.report.plots import Plot
-from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
-from bench_matrix.report.noise import noise
-from bench_matrix.report.sections import sections
-from bench_matrix.report.verdict_view import (HEADERS, INTRO, NUMERIC, closest_lines, open_lines,
-                                             requirement_lines, rows)
+from bench_matrix.report.render.verdict_view import (HEADERS, INTRO, NUMERIC, closest_lines, open_lines,
+                                                     requirement_lines, rows)
 from bench_matrix.store import CellRecord
 
 _COLUMN_NOTES = ("Latency is measured one sample at a time after warm-up runs; p50/p90/p99 are percentiles "

@@ -36,7 +36,7 @@ from scipy.stats import fisher_exact, mannwhitneyu
 from bench_matrix.errors import UserError
 from bench_matrix.measure.metrics import DIRECTIONS, HEADLINE
 from bench_matrix.measurement import Measurement, Speedup
-from bench_matrix.report.summary import disturbed_phases, emulated, figure, headline
+from bench_matrix.report.analysis.summary import disturbed_phases, emulated, figure, headline
 from bench_matrix.store import CellRecord
 
 METRICS = ("p50", "p99", "throughput", "size", "accuracy")

@@ -12,7 +12,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from bench_matrix.measure.metrics import DIRECTIONS, HEADLINE
-from bench_matrix.report.summary import ModelSummary, figure, metric, p50
+from bench_matrix.report.analysis.summary import ModelSummary, figure, metric, p50
 from bench_matrix.store import CellRecord
 
 MIB = 2**20

@@ -6,8 +6,13 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from bench_matrix.report.columns import DIFFERENT_ENVIRONMENTS, cell_names, model_columns, shown
-from bench_matrix.report.text import (
+from bench_matrix.report.analysis.noise import noise
+from bench_matrix.report.analysis.summary import Environment, ModelSummary, Report, headline
+from bench_matrix.report.render.columns import DIFFERENT_ENVIRONMENTS, cell_names, model_columns, shown
+from bench_matrix.report.render.html_parts import SCRIPT, STYLE, Html, esc, figure, table
+from bench_matrix.report.render.plots import Plot
+from bench_matrix.report.render.sections import sections
+from bench_matrix.report.render.text import (
     HEADLINE_NOTE,
     NO_REASON,
     accuracy_line,
@@ -20,13 +25,8 @@ from bench_matrix.report.text import (
     run_line,
     skip_reason,
 )
-from bench_matrix.report.html_parts import SCRIPT, STYLE, Html, esc, figure, table
-from bench_matrix.report.plots import Plot
-from bench_matrix.report.summary import Environment, ModelSummary, Report, headline
-from bench_matrix.report.noise import noise
-from bench_matrix.report.sections import sections
-from bench_matrix.report.verdict_view import (HEADERS, INTRO, NUMERIC, closest_lines, open_lines,
-                                             requirement_lines, rows)
+from bench_matrix.report.render.verdict_view import (HEADERS, INTRO, NUMERIC, closest_lines, open_lines,
+                                                     requirement_lines, rows)
 
 TITLE = "bench-matrix report"
 

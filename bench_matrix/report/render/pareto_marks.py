@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from bench_matrix.report.pareto import Point
+from bench_matrix.report.analysis.pareto import Point
 
 GREEN = "#1a9641"
 PASSES, RECOMMENDED = " ✓", " ★"

@@ -8,10 +8,10 @@ from pathlib import Path
 from typing import Any
 
 from bench_matrix.measurement import LatencyStats
-from bench_matrix.report.columns import MIB
-from bench_matrix.report.noise import noise
-from bench_matrix.report.summary import Report, Row, disturbed_phases, headline, metric, number
-from bench_matrix.report.verdict_view import open_lines
+from bench_matrix.report.analysis.noise import noise
+from bench_matrix.report.analysis.summary import Report, Row, disturbed_phases, headline, metric, number
+from bench_matrix.report.render.columns import MIB
+from bench_matrix.report.render.verdict_view import open_lines
 from bench_matrix.store import CellRecord
 
 CELL_COLUMNS = ("key", "model", "framework", "backend", "strategy", "precision", "target", "host", "run")

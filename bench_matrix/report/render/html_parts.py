@@ -8,7 +8,7 @@ import html
 import re
 from collections.abc import Sequence
 
-from bench_matrix.report.plots import Plot
+from bench_matrix.report.render.plots import Plot
 
 _NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")
 

@@ -10,13 +10,13 @@ from typing import TYPE_CHECKING, Any
 from bench_matrix.measure.affinity import NOT_EXPOSED
 from bench_matrix.measure.metrics import HEADLINE
 from bench_matrix.measurement import Measurement
-from bench_matrix.report.plausible import implausible
-from bench_matrix.report.reruns import Rerun, reruns
+from bench_matrix.report.analysis.plausible import implausible
+from bench_matrix.report.analysis.reruns import Rerun, reruns
 from bench_matrix.store import CellRecord
 
 if TYPE_CHECKING:
     from bench_matrix.matrix.requirements import Requirements
-    from bench_matrix.report.recommend import Recommendation
+    from bench_matrix.report.analysis.recommend import Recommendation
     from bench_matrix.verdict import Verdict
 
 STATUSES = ("ok", "skipped", "failed")
@@ -41,7 +41,7 @@ class Row:
     speedup_own_fp32: float | None = None  # vs the same backend's fp32 cell (strategy none, same target)
     speedup_half: float | None = None  # the paired speed-up's 95 % interval, its larger side relative
     accuracy_delta: float | None = None  # the task's headline metric (HEADLINE) minus the baseline's
-    verdict: Verdict | None = None  # against the model's requirements (report/judging.py); None: none given
+    verdict: Verdict | None = None  # against the model's requirements (judging.py); None: none given
 
 
 @dataclass(frozen=True)

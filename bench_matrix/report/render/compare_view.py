@@ -13,8 +13,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from bench_matrix.report.columns import DASH, mib, sig, times
-from bench_matrix.report.compare import (
+from bench_matrix.report.analysis.compare import (
     BETTER,
     METRICS,
     NOT_COMPARABLE,
@@ -23,6 +22,7 @@ from bench_matrix.report.compare import (
     Comparison,
     MetricChange,
 )
+from bench_matrix.report.render.columns import DASH, mib, sig, times
 
 DISTURBED_MARK = " ~"  # after the verdict of a cell flagged for interference on a side
 _STYLES = {BETTER: "green", WORSE: "bold red", NOT_COMPARABLE: "yellow"}

@@ -11,8 +11,8 @@ from typing import Any
 
 from bench_matrix.named import resolve
 from bench_matrix.registry import scenarios
-from bench_matrix.report.plots import Plot
-from bench_matrix.report.summary import ModelSummary
+from bench_matrix.report.analysis.summary import ModelSummary
+from bench_matrix.report.render.plots import Plot
 
 
 @dataclass(frozen=True)

@@ -11,8 +11,8 @@ from typing import Any
 
 from bench_matrix.matrix.require import read_file
 from bench_matrix.matrix.requirements import Declared
-from bench_matrix.report.recommend import Candidate, recommend
-from bench_matrix.report.summary import ModelSummary, Report
+from bench_matrix.report.analysis.recommend import Candidate, recommend
+from bench_matrix.report.analysis.summary import ModelSummary, Report
 from bench_matrix.store import CellRecord
 from bench_matrix.verdict import judge
 

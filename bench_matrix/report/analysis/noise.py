@@ -9,7 +9,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from bench_matrix.report.summary import Report, number
+from bench_matrix.report.analysis.summary import Report, number
 
 MORE_BUDGET = 4  # times the timing budget the line prices: widths shrink as 1/√rounds, so 4× halves them
 DEVICE_CHECK = "bench-matrix device check"
