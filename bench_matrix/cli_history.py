@@ -116,7 +116,7 @@ def side(spec: str, store_path: Path):
     """One side of a comparison (with its models' tasks): a run of `store_path`, a store file or
     STORE@RUN."""
     from bench_matrix.report import View, load
-    from bench_matrix.report.analysis.compare import Side
+    from bench_matrix.report.analysis.metric_change import Side
 
     path, run = _split(spec, store_path)
     loaded = load(path, View(run=run), with_samples=True)

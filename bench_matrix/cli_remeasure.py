@@ -13,7 +13,7 @@ from bench_matrix.errors import UserError
 from bench_matrix.jobs.results import Measured
 from bench_matrix.measure.stats import unpack_samples
 from bench_matrix.measurement import Speedup
-from bench_matrix.report.analysis.compare import Side
+from bench_matrix.report.analysis.metric_change import Side
 from bench_matrix.store import CellRecord
 
 

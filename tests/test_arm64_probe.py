@@ -12,7 +12,8 @@ import numpy as np
 from bench_matrix.cell import Cell
 from bench_matrix.measure.cpu import X86_FEATURES, emulation, hwcap_flags, parse_cpuinfo, this_cpu
 from bench_matrix.measure.env import capture
-from bench_matrix.report.analysis.compare import Side, compare
+from bench_matrix.report.analysis.compare import compare
+from bench_matrix.report.analysis.metric_change import Side
 from bench_matrix.report.analysis.recommend import Recommendation
 from bench_matrix.report.analysis.summary import summarize
 from bench_matrix.report.render.markdown import index_page, model_page

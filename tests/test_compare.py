@@ -13,16 +13,8 @@ from rich.console import Console
 from bench_matrix.cell import Cell
 from bench_matrix.errors import UserError
 from bench_matrix.measurement import Speedup
-from bench_matrix.report.analysis.compare import (
-    DEFAULT_THRESHOLDS,
-    NOT_COMPARABLE,
-    TEST,
-    UNCHANGED,
-    WORSE,
-    Side,
-    compare,
-    parse_threshold,
-)
+from bench_matrix.report.analysis.compare import DEFAULT_THRESHOLDS, TEST, compare, parse_threshold
+from bench_matrix.report.analysis.metric_change import NOT_COMPARABLE, UNCHANGED, WORSE, Side
 from bench_matrix.report.render.compare_view import comparison_json, comparison_markdown, print_comparison
 from bench_matrix.store import CellRecord
 

@@ -134,6 +134,23 @@ def test_the_walk_sees_a_circle_and_an_upward_import():
     assert "bench_matrix.jobs" in GRAPH["bench_matrix.scenarios.base"]  # under TYPE_CHECKING
 
 
+def written(node: ast.AST) -> list[str]:
+    """The modules an import statement names, as written (none for any other node)."""
+    if isinstance(node, ast.Import):
+        return [alias.name for alias in node.names]
+    return [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+
+
+def test_the_report_analysis_draws_nothing():
+    """report.analysis computes figures only: it imports no drawing library (and the table keeps
+    report.render out of it)."""
+    drawing = [f"{name} imports {module}" for name, path in modules().items()
+               if name.startswith("bench_matrix.report.analysis")
+               for node in ast.walk(ast.parse(path.read_text(), str(path)))
+               for module in written(node) if module.split(".")[0] in ("rich", "matplotlib")]
+    assert drawing == []
+
+
 @pytest.mark.parametrize("prefix", ["yaml", "jsonschema", "bench_matrix.matrix", "bench_matrix.scenarios",
                                     "bench_matrix.report", "bench_matrix.registry"])
 def test_the_plugin_api_loads_only_the_plugin_contract(prefix: str):

@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 
 from bench_matrix.cell import Cell
-from bench_matrix.report.analysis.pareto import Box, pareto_optimal, place_labels, points, reference_sizes
+from bench_matrix.report.analysis.pareto import pareto_optimal, points
 from bench_matrix.report.analysis.summary import ModelSummary, summarize
+from bench_matrix.report.render.pareto_layout import Box, place_labels, reference_sizes
 from bench_matrix.report.render.plots import file_stem, latency_figure, model_plots, pareto_figure
 from bench_matrix.report.render.sections import section_plots
 from bench_matrix.store import CellRecord

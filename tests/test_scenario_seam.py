@@ -14,8 +14,8 @@ GENERIC = ["runner.py", "plan.py", "cell.py", "jobs/__init__.py", "jobs/measure.
            *(str(p.relative_to(ROOT)) for p in sorted(ROOT.glob("store*.py"))),
            "report/__init__.py",
            *(f"report/render/{name}.py" for name in ("html", "markdown", "terminal", "plots", "sections",
-                                                     "verdict_view", "pareto_marks")),
-           *(f"report/analysis/{name}.py" for name in ("recommend", "judging"))]
+                                                     "verdict_view", "pareto_marks", "pareto_layout")),
+           *(f"report/analysis/{name}.py" for name in ("recommend", "judging", "pareto"))]
 SCENARIO = ("closed_loop", "closed loop", "closedloop", " laps", "simulator")
 WORKLOAD = ("driving", "circuit")
 

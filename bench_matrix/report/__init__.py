@@ -1,5 +1,6 @@
 """Reports of stored results (never running anything): terminal tables, Markdown pages with plots, one HTML
-file, JSON and CSV."""
+file, JSON and CSV. This module loads the records and writes a report (what the commands call);
+report.analysis computes its figures, report.render draws them."""
 
 from __future__ import annotations
 

@@ -13,15 +13,8 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from bench_matrix.report.analysis.compare import (
-    BETTER,
-    METRICS,
-    NOT_COMPARABLE,
-    WORSE,
-    CellComparison,
-    Comparison,
-    MetricChange,
-)
+from bench_matrix.report.analysis.compare import METRICS, CellComparison, Comparison
+from bench_matrix.report.analysis.metric_change import BETTER, NOT_COMPARABLE, WORSE, MetricChange
 from bench_matrix.report.render.columns import DASH, mib, sig, times
 
 DISTURBED_MARK = " ~"  # after the verdict of a cell flagged for interference on a side
@@ -63,7 +56,7 @@ def title_line(comparison: Comparison) -> str:
     return f"Comparing {comparison.base} (base) → {comparison.new} (new)"
 
 
-def figure(change: MetricChange) -> str:
+def change_text(change: MetricChange) -> str:
     """"1.20 → 1.50 (+25.0 %)"; "(n/c)" instead of the change when it is not comparable."""
     # p50 judged on the speed-up
     render = times if change.name == "speedup.value" else _FORMATS[change.metric]
@@ -114,7 +107,7 @@ def print_comparison(comparison: Comparison, console: Console) -> None:
 
 def _styled(cell: CellComparison, metric: str) -> Text:
     change = _metric(cell, metric)
-    return Text(DASH) if change is None else Text(figure(change), style=_STYLES.get(change.verdict, ""))
+    return Text(DASH) if change is None else Text(change_text(change), style=_STYLES.get(change.verdict, ""))
 
 
 def comparison_markdown(comparison: Comparison) -> str:
@@ -138,7 +131,7 @@ def _markdown_table(cells: list[CellComparison]) -> list[str]:
 
 def _marked(cell: CellComparison, metric: str) -> str:
     change = _metric(cell, metric)
-    return DASH if change is None else _emphasis(_escape(figure(change)), change.verdict)
+    return DASH if change is None else _emphasis(_escape(change_text(change)), change.verdict)
 
 
 def _emphasis(text: str, verdict: str) -> str:

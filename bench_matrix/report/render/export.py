@@ -11,6 +11,7 @@ from bench_matrix.measurement import LatencyStats
 from bench_matrix.report.analysis.noise import noise
 from bench_matrix.report.analysis.summary import Report, Row, disturbed_phases, headline, metric, number
 from bench_matrix.report.render.columns import MIB
+from bench_matrix.report.render.noise_line import noise_json
 from bench_matrix.report.render.verdict_view import open_lines
 from bench_matrix.store import CellRecord
 
@@ -45,7 +46,7 @@ def report_json(records: list[CellRecord], report: Report) -> str:
     reruns = {m.name: [r.to_json() for r in m.reruns] for m in report.models if m.reruns}
     found_noise = noise(report)
     data = {"requirements": required, "recommendations": recommended, "open": open_lines(report.models),
-            "noise": found_noise.to_json() if found_noise is not None else None, "reruns": reruns,
+            "noise": noise_json(found_noise) if found_noise is not None else None, "reruns": reruns,
             "records": found}
     return json.dumps(data, indent=2) + "\n"
 

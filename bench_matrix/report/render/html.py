@@ -9,7 +9,8 @@ from pathlib import Path
 from bench_matrix.report.analysis.noise import noise
 from bench_matrix.report.analysis.summary import Environment, ModelSummary, Report, headline
 from bench_matrix.report.render.columns import DIFFERENT_ENVIRONMENTS, cell_names, model_columns, shown
-from bench_matrix.report.render.html_parts import SCRIPT, STYLE, Html, esc, figure, table
+from bench_matrix.report.render.html_parts import SCRIPT, STYLE, Html, esc, plot_html, table
+from bench_matrix.report.render.noise_line import noise_line
 from bench_matrix.report.render.plots import Plot
 from bench_matrix.report.render.sections import sections
 from bench_matrix.report.render.text import (
@@ -63,7 +64,7 @@ def _verdict(report: Report) -> list[str]:
     parts += [f'<p class="note bad"><strong>{esc(line)}</strong></p>' for line in closest]
     parts += [f'<p class="note"><strong>Open:</strong> {esc(line)}</p>' for line in open_lines(report.models)]
     found = noise(report)
-    return parts + ([f'<p class="meta noise">{esc(found.text(str))}</p>'] if found is not None else [])
+    return parts + ([f'<p class="meta noise">{esc(noise_line(found, str))}</p>'] if found is not None else [])
 
 
 def _anchor(index: int) -> str:
@@ -91,7 +92,7 @@ def _model_section(index: int, model: ModelSummary, plots: Sequence[Plot]) -> st
              f'<p class="meta">{esc(model_line(model, str))}</p>', f"<p>{esc(accuracy_line(model))}</p>",
              *_notes(model), "<h3>Results</h3>", _results(model)]
     if plots:
-        parts += ["<h3>Plots</h3>", *(figure(plot) for plot in plots)]
+        parts += ["<h3>Plots</h3>", *(plot_html(plot) for plot in plots)]
     parts += [*(part for s in sections() for part in s.html(model)), *_skipped(model), *_failed(model),
               f"<details><summary>Environment of {esc(model.name)}</summary>{_environment(model.environment)}"
               "</details>", "</section>"]

@@ -51,7 +51,7 @@ def _cell(text: str, numeric: bool) -> str:
         f"<td{' class=num' if numeric else ''}>{content}</td>"
 
 
-def figure(plot: Plot) -> str:
+def plot_html(plot: Plot) -> str:
     """The plot's PNG inline as a data: URI, with its title as caption."""
     data = base64.b64encode(plot.path.read_bytes()).decode("ascii")
     return (f'<figure><img src="data:image/png;base64,{data}" alt="{esc(plot.alt)}">'

@@ -14,6 +14,7 @@ from bench_matrix.report.analysis.noise import noise
 from bench_matrix.report.analysis.summary import Environment, ModelSummary, Report, headline
 from bench_matrix.report.render.columns import (DASH, DIFFERENT_ENVIRONMENTS, Column, cell_names, model_columns,
                                                 shown)
+from bench_matrix.report.render.noise_line import noise_line
 from bench_matrix.report.render.plots import Plot
 from bench_matrix.report.render.sections import sections
 from bench_matrix.report.render.text import (
@@ -66,7 +67,7 @@ def index_page(report: Report) -> str:
     accuracy, link) and the environment."""
     found = noise(report)
     lines = ["# bench-matrix report", "", run_line(report), "", *verdict(report.models, INTRO),
-             *([_escape_text(found.text(_code)), ""] if found is not None else []), "## Models", "",
+             *([_escape_text(noise_line(found, _code)), ""] if found is not None else []), "## Models", "",
              _table(["Model", "Framework", "ok", "skipped", "failed", "Fastest cell", "p50 ms", "Speed-up",
                      "Accuracy"], [False, False, True, True, True, False, True, True, False],
                     [_index_row(m) for m in report.models]),

@@ -15,10 +15,11 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.report.analysis.pareto import Box, Point, accuracy_metric, place_labels, points, reference_sizes
+from bench_matrix.report.analysis.pareto import Point, accuracy_metric, points
 from bench_matrix.report.analysis.summary import ModelSummary, disturbed_phases, wide_phases
 from bench_matrix.report.render import pareto_marks
 from bench_matrix.report.render.columns import APPROXIMATE, cell_names, sig
+from bench_matrix.report.render.pareto_layout import Box, place_labels, reference_sizes
 from bench_matrix.store import CellRecord
 
 DPI = 110

@@ -21,6 +21,7 @@ from bench_matrix.report.render.columns import (
     model_columns,
     shown,
 )
+from bench_matrix.report.render.noise_line import noise_line
 from bench_matrix.report.render.sections import sections
 from bench_matrix.report.render.text import (
     accuracy_line,
@@ -53,7 +54,7 @@ def print_report(report: Report, console: Console) -> None:
     console.print(Text(run_line(report)))
     print_verdict(report.models, console)
     if (found := noise(report)) is not None:
-        console.print(Text(found.text(str), style="dim"))
+        console.print(Text(noise_line(found, str), style="dim"))
     if len(report.models) > 1:
         console.print(_overview(report))
     for model in report.models:
