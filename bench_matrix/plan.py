@@ -83,14 +83,20 @@ def _probe(matrix: Matrix, cells: list[Cell], installed: list[str], workspace: W
            prober: Prober) -> Probe:
     """The probe of the cells' combinations and fine-tunings, the model files' inputs and the parameters of
     several-input factories' forward."""
-    keys = tuple(sorted({verdict_key(matrix, c) for c in cells}))
-    training = tuple(sorted({k for c in cells if (k := training_key(matrix, c))}))
+    judging = probe_job(matrix, cells, workspace)
     files = tuple(sorted({(m.framework, m.source_format, str(m.file)) for m in matrix.models
                           if m.file is not None and (not m.inputs or m.source_format == "onnx")}))  # batch
-    names = tuple(sorted(set(installed) | {k[0] for k in keys}))
+    names = tuple(sorted(set(installed) | set(judging.backends)))
     factories = tuple(sorted({(m.factory, tuple(map(str, m.python_path))) for m in matrix.models
                               if m.factory and _several_inputs(matrix, m)}))
-    return prober(ProbeJob(workspace, names, keys, training, files, factories))
+    return prober(replace(judging, backends=names, model_files=files, factories=factories))
+
+
+def probe_job(matrix: Matrix, cells: list[Cell], workspace: Workspace) -> ProbeJob:
+    """The probe job judging the cells' combinations and fine-tunings (alone: on an executor's machine)."""
+    keys = tuple(sorted({verdict_key(matrix, c) for c in cells}))
+    training = tuple(sorted({k for c in cells if (k := training_key(matrix, c))}))
+    return ProbeJob(workspace, tuple(sorted({k[0] for k in keys})), keys, training)
 
 
 def scenarios_of(matrix: Matrix, cell: Cell) -> tuple[Planned, ...]:

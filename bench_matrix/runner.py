@@ -19,6 +19,7 @@ from bench_matrix.jobs.results import PreparedData, PreparedModel
 from bench_matrix.measure import env as environment
 from bench_matrix.measure.machine_lock import store_lock
 from bench_matrix.measurement import Measurement
+from bench_matrix.placement import place
 from bench_matrix.plan import ModelPlan, Plan
 from bench_matrix.progress import RunProgress
 from bench_matrix.selection import Filters, Shard
@@ -80,7 +81,9 @@ class Runner:
         chosen = [p for p in self.plan.cells if p.state != "invalid" and filters.keep(p.cell)]
         if not chosen:
             raise UserError("no cell of the matrix matches the filters (see `bench-matrix plan`)")
-        chosen = self.executor.decide(self.plan, self.shard.select(chosen))
+        chosen = self.shard.select(chosen)
+        chosen, able = place(self.matrix, chosen, self.executor.probes(self.matrix, chosen))
+        self.executor.place(able)
         todo = [p for p in chosen if p.state == "run" and (force or not self._done(p))]
         self.force = force
         self.counts = {"ok": 0, "skipped": 0, "failed": 0,

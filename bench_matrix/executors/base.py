@@ -1,5 +1,5 @@
 """The executor interface: the runner submits `Work` (a job, its limits and maybe the machine it must run on)
-and takes an `Ended` back as each piece ends; the executor decides where each job runs."""
+and takes an `Ended` back as each piece ends; it runs each job on a machine able to (placement.py decides)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,8 @@ from bench_matrix.cell import CellPlan
 from bench_matrix.jobs import Job
 
 if TYPE_CHECKING:
-    from bench_matrix.plan import Plan
+    from bench_matrix.matrix.spec import Matrix
+    from bench_matrix.placement import Probed
 
 Phase = Callable[[str], None]
 Tick = Callable[[], None]
@@ -64,10 +65,13 @@ class Ended:
 class Executor(ABC):
     """Runs jobs, each in its own process, somewhere; the runner stores what comes back."""
 
-    def decide(self, plan: Plan, cells: list[CellPlan]) -> list[CellPlan]:
-        """The cells with their run/skip state as this executor's machines judge them (default: as
-        planned)."""
-        return cells
+    def probes(self, matrix: Matrix, cells: list[CellPlan]) -> dict[str, Probed]:
+        """What the probe job found on each of its machines (none: only this one, which the plan probed)."""
+        return {}
+
+    def place(self, able: dict[str, list[str]]) -> None:
+        """Take the machines able to run each cell (by key; placement.py): its jobs run on one of them."""
+        self.able = able
 
     @abstractmethod
     def hosts(self) -> set[str]:

@@ -21,12 +21,12 @@ from bench_matrix.executors.base import Ended, Executor, Limits, Phase, Tick, Wo
 from bench_matrix.executors.local import PROBE_TIMEOUT_S
 from bench_matrix.executors.ray_tasks import NodeRun, Shipment
 from bench_matrix.executors.shipping import pack
-from bench_matrix.jobs import Job, ProbeJob
+from bench_matrix.jobs import Job
 from bench_matrix.jobs.results import MeasuredGroup
-from bench_matrix.matrix.expand import judge, training_key, verdict_key
-from bench_matrix.matrix.spec import file_kind
+from bench_matrix.matrix.spec import Matrix, file_kind
 from bench_matrix.measure import env as environment
-from bench_matrix.plan import Plan
+from bench_matrix.placement import Probed
+from bench_matrix.plan import probe_job
 from bench_matrix.sources.onnx_file import external_data_files
 from bench_matrix.workspace import Workspace
 
@@ -61,58 +61,32 @@ class RayExecutor(Executor):
         _connect(ray, address or os.environ.get("RAY_ADDRESS") or None)
         self.nodes = _timing_nodes(ray.nodes(), address)
         self.hostnames: dict[str, str] = {}  # node id -> host, from the probes
-        self._able: dict[str, list[str]] = {}  # cell key -> nodes that can run it
+        self.able: dict[str, list[str]] = {}  # cell key -> nodes that can run it
         self._devices: dict[tuple[str, str], str] = {}  # (backend, target) -> its device, as the nodes probed
         self._shipped: dict[str, Shipment] = {}  # a path as the driver names it -> its content in the store
         self._flights: dict[Any, tuple[_Flight, Any]] = {}  # task ref -> its flight, ref of its packed files
         self._ended: list[Ended] = []
         self._remote = ray.remote(ray_tasks.run_on_node)
 
-    def decide(self, plan: Plan, cells: list[CellPlan]) -> list[CellPlan]:
-        """Probe every node; a cell runs where a node can run it, else is skipped with each node's reason."""
-        states = self._probe(plan, cells)
-        decided = []
-        for p in cells:
-            if p.state != "run" and p.state != "skip":
-                decided.append(p)
-                continue
-            judged = {node: states[node][p.cell] for node in self.nodes}
-            self._able[p.cell.key] = [n for n, (state, _) in judged.items() if state == "run"]
-            decided.append(replace(p, state="run", reason=None) if self._able[p.cell.key] else
-                           replace(p, state="skip", reason=self._reasons(judged)))
-        return decided
-
-    def _probe(self, plan: Plan, cells: list[CellPlan]) -> dict[str, dict[Any, tuple[str, str | None]]]:
-        """Each node's judgement (state, reason) of each cell, from a probe task pinned to the node."""
-        matrix = plan.matrix
-        keys = tuple(sorted({verdict_key(matrix, p.cell) for p in cells}))
-        training = tuple(sorted({k for p in cells if (k := training_key(matrix, p.cell))}))
-        job = ProbeJob(self.workspace, tuple(sorted({k[0] for k in keys})), keys, training)
+    def probes(self, matrix: Matrix, cells: list[CellPlan]) -> dict[str, Probed]:
+        """Probe every node, with a task pinned to it: reasons name its host, the records of cells it skips
+        carry this machine's."""
+        job = probe_job(matrix, [p.cell for p in cells], self.workspace)
         limits = Limits(self.workspace.log("probe"), PROBE_TIMEOUT_S)
         refs = {node: self._remote.options(num_cpus=0, num_gpus=gpus, num_returns=2, name="probe_on_node",
                                            scheduling_strategy=self._on(node))
                 .remote(job, limits, {}, time.time()) for node, gpus in self.nodes.items()}
-        states = {}
+        probed = {}
         for node, (ref, _) in refs.items():
             try:
                 run = self.ray.get(ref)
             except self.ray.exceptions.RayError as exc:  # the node died or cannot run tasks
                 run = NodeRun(node, node[:8], error=f"{type(exc).__name__}: {exc}")
             self.hostnames[node] = run.host
-            if run.error:
-                states[node] = {p.cell: ("skip", f"probing the node failed: {run.error}") for p in cells}
-                continue
-            self._devices.update(run.result.devices())
-            expansion = judge(matrix, [p.cell for p in cells], 0, run.result.verdicts, run.result.trainers)
-            states[node] = {q.cell: (q.state, q.reason) for q in expansion.cells}
-        return states
-
-    def _reasons(self, judged: dict[str, tuple[str, str | None]]) -> str:
-        """Why no node can run a cell: each distinct reason, after the hosts it concerns."""
-        by_reason: dict[str, list[str]] = {}
-        for node, (_, reason) in judged.items():
-            by_reason.setdefault(reason or "not valid there", []).append(self.hostnames.get(node, node[:8]))
-        return "; ".join(f"{', '.join(sorted(set(hosts)))}: {reason}" for reason, hosts in by_reason.items())
+            failed = f"probing the node failed: {run.error}" if run.error else None
+            probed[node] = Probed(run.host, None, None if failed else run.result, failed)
+            self._devices.update({} if failed else run.result.devices())
+        return probed
 
     def hosts(self) -> set[str]:
         return set(self.hostnames.values()) or {environment.host_name()}
@@ -121,8 +95,7 @@ class RayExecutor(Executor):
         self._start(work, attempt=1)
 
     def _start(self, work: Work, attempt: int) -> None:
-        flight = _Flight(work, attempt, node=work.on or self._placement(work.job))
-        self._launch(flight)
+        self._launch(_Flight(work, attempt, node=work.on or self._placement(work.job)))
 
     def _launch(self, flight: _Flight) -> None:
         """Submit the flight's job as a task, with what it reads shipped."""
@@ -148,7 +121,7 @@ class RayExecutor(Executor):
 
     def _able_nodes(self, job: Job) -> list[str]:
         cell = job.placed()
-        return self._able.get(cell.key, list(self.nodes)) if cell else list(self.nodes)
+        return self.able.get(cell.key, list(self.nodes)) if cell else list(self.nodes)
 
     def _on(self, node: str | None) -> Any:
         from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
@@ -216,7 +189,7 @@ class RayExecutor(Executor):
         fail it."""
         alive = {n["NodeID"] for n in self.ray.nodes() if n.get("Alive")}
         self.nodes = {n: gpus for n, gpus in self.nodes.items() if n in alive}
-        self._able = {key: [n for n in able if n in alive] for key, able in self._able.items()}
+        self.able = {key: [n for n in able if n in alive] for key, able in self.able.items()}
         where = [flight.work.on] if flight.work.on else self._able_nodes(flight.work.job)
         if flight.attempt < MAX_ATTEMPTS and set(where) & alive:
             self._start(flight.work, flight.attempt + 1)

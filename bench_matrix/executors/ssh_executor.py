@@ -1,6 +1,6 @@
 """The SSH executor: every job but measuring runs here (the local executor); each model's rounds job runs on
 an SSH device that can run its cells, with what it reads shipped there once by content, one rounds job per
-device at a time. Devices are checked (login, versions) when it opens and probed in `decide`."""
+device at a time. Devices are checked (login, versions) when it opens and probed before the run (`probes`)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,9 @@ import selectors
 import shutil
 import tempfile
 from collections import Counter
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
 
 from bench_matrix.cell import CellPlan
 from bench_matrix.errors import UserError
@@ -19,13 +18,11 @@ from bench_matrix.executors.base import Ended, Executor, Limits, Phase, Tick, Wo
 from bench_matrix.executors.local import PROBE_TIMEOUT_S, LocalExecutor
 from bench_matrix.executors.ssh_flight import Flight
 from bench_matrix.executors.ssh_link import Device, Link, Unreachable
-from bench_matrix.jobs import ProbeJob
-from bench_matrix.matrix.expand import judge, training_key, verdict_key
+from bench_matrix.matrix.spec import Matrix
 from bench_matrix.measure import env as environment
-from bench_matrix.plan import Plan
+from bench_matrix.placement import Probed
+from bench_matrix.plan import probe_job
 from bench_matrix.workspace import Workspace
-
-Judged = tuple[str, str | None]  # a device's state of a cell (run, skip, invalid) and why
 
 
 @dataclass(frozen=True)
@@ -50,7 +47,7 @@ class SshExecutor(Executor):
         self.hostnames: dict[str, str] = {}  # device -> the host its records carry
         self.down: dict[str, str] = {}  # device -> why it cannot measure (unreachable, or its probe failed)
         self.failed_on: set[str] = set()  # the devices in `down` that cells were given to
-        self._able: dict[str, list[str]] = {}  # cell key -> the devices that can measure it
+        self.able: dict[str, list[str]] = {}  # cell key -> the devices that can measure it
         self._flights: list[Flight] = []  # running or queued, in order
         self._ended: list[Ended] = []
         try:
@@ -67,44 +64,20 @@ class SshExecutor(Executor):
         except Unreachable as exc:
             self.down[name] = f"device {name} is unreachable: {exc}"
 
-    def decide(self, plan: Plan, cells: list[CellPlan]) -> list[CellPlan]:
-        """Probe every reachable device; a cell runs on the devices that can run it (else on one that cannot
-        measure, unreachable or its probe failed, where it fails), or is skipped with each device's
-        reason."""
-        probed = {name: self._probe(name, plan, cells) for name in self.hostnames}
-        states = {name: found for name, found in probed.items() if found is not None}
-        decided = []
-        for p in cells:
-            if p.state not in ("run", "skip"):
-                decided.append(p)
-                continue
-            judged = {name: found[p.cell] for name, found in states.items()}
-            able = [name for name, (state, _) in judged.items() if state == "run"] or list(self.down)
-            self._able[p.cell.key] = able
-            decided.append(replace(p, state="run", reason=None, judged_on=self._judge(able)) if able else
-                           replace(p, state="skip", reason=_reasons(judged), judged_on=self._judge(judged)))
-        return decided
-
-    def _judge(self, devices: Iterable[str]) -> str | None:
-        """The host a cell's records not measured there are stored under: the first of its devices' hosts."""
-        first = min(devices, default=None)
-        return None if first is None else self.hostnames.get(first, first)
-
-    def _probe(self, name: str, plan: Plan, cells: list[CellPlan]) -> dict[Any, Judged] | None:
-        """The device's judgement (state, reason) of each cell, from the probe job run there; None when the
-        probe failed (the device is noted as one that cannot measure)."""
-        matrix = plan.matrix
-        keys = tuple(sorted({verdict_key(matrix, p.cell) for p in cells}))
-        training = tuple(sorted({k for p in cells if (k := training_key(matrix, p.cell))}))
-        job = ProbeJob(self.workspace, tuple(sorted({k[0] for k in keys})), keys, training, measure_only=True)
-        flight = Flight(Work(job, Limits(self.workspace.log("probe"), PROBE_TIMEOUT_S)), self.links[name],
-                        self.hostnames[name], lambda _: None)
-        ended = flight.wait()
-        if not ended.ok:
-            self.down[name] = f"device {name} cannot measure: probing it failed: {ended.error}"
-            return None
-        expansion = judge(matrix, [p.cell for p in cells], 0, ended.result.verdicts, ended.result.trainers)
-        return {q.cell: (q.state, q.reason) for q in expansion.cells}
+    def probes(self, matrix: Matrix, cells: list[CellPlan]) -> dict[str, Probed]:
+        """Probe every reachable device; those that cannot measure (unreachable, probe failed) come first."""
+        job = replace(probe_job(matrix, [p.cell for p in cells], self.workspace), measure_only=True)
+        limits = Limits(self.workspace.log("probe"), PROBE_TIMEOUT_S)
+        probed: dict[str, Probed] = {}
+        for name, host in self.hostnames.items():
+            ended = Flight(Work(job, limits), self.links[name], host, lambda _: None).wait()
+            if ended.ok:
+                probed[name] = Probed(name, host, ended.result)
+            else:
+                self.down[name] = f"device {name} cannot measure: probing it failed: {ended.error}"
+        down = {name: Probed(name, self.hostnames.get(name, name), failed=why, down=True)
+                for name, why in self.down.items()}
+        return {**down, **probed}
 
     def hosts(self) -> set[str]:
         return set(self.hostnames.values()) | set(self.down) or {environment.host_name()}
@@ -126,7 +99,7 @@ class SshExecutor(Executor):
     def _placement(self, key: str) -> str:
         """The device to measure a cell on: of those that can, the one with the fewest models waiting or
         measuring."""
-        able = self._able.get(key) or list(self.links)
+        able = self.able.get(key) or list(self.links)
         given = Counter(f.link.device.name for f in self._flights)
         return min(able, key=lambda name: given[name])
 
@@ -177,10 +150,3 @@ class SshExecutor(Executor):
             link.close()
         shutil.rmtree(self._control, ignore_errors=True)
 
-
-def _reasons(judged: dict[str, Judged]) -> str:
-    """Why no device can run a cell: each distinct reason, after the devices it concerns."""
-    by_reason: dict[str, list[str]] = {}
-    for name, (_, reason) in judged.items():
-        by_reason.setdefault(reason or "not valid there", []).append(name)
-    return "; ".join(f"{', '.join(sorted(names))}: {reason}" for reason, names in by_reason.items())
