@@ -1,5 +1,5 @@
 """The `bench-matrix` command: run, plan, report, backends, schema; runs, compare and merge (cli_history);
-init and run of a model file (cli_auto)."""
+init and run of a model file (cli_auto); device check (cli_device); what they open, one way (cli_open)."""
 
 from __future__ import annotations
 
@@ -13,9 +13,10 @@ from bench_matrix import __version__
 from bench_matrix.cli_auto import add_init, add_model_options
 from bench_matrix.cli_device import add_device_command, add_device_options, ssh_options
 from bench_matrix.cli_history import add_commands
+from bench_matrix.cli_open import load, open_run, open_store, results_file
 from bench_matrix.cli_verdict import add_report_options, add_require
 from bench_matrix.errors import MatrixError, UserError
-from bench_matrix.workspace import DEFAULT_ROOT
+from bench_matrix.workspace import DEFAULT_ROOT, Workspace
 
 FILTER_KEYS = ("model", "backend", "strategy", "precision", "target")
 VIEW_KEYS = ("host", "model", "backend")  # report's filters (bench_matrix.report.VIEW_KEYS, without its imports)
@@ -164,7 +165,7 @@ def _check_results(args: argparse.Namespace) -> None:
     """plan and report only read a results file: an explicit one must exist, any existing one be a store."""
     from bench_matrix.store import ResultStore
 
-    path = args.results or args.workspace / "results.sqlite"
+    path = results_file(args)
     label = "--results" if args.results else "results file"
     if (args.results or args.command == "runs") and not os.path.lexists(path):
         raise UserError(f"--results {path}: no such file; `bench-matrix run MATRIX --results {path}` "
@@ -173,70 +174,41 @@ def _check_results(args: argparse.Namespace) -> None:
         ResultStore(path, readonly=True, label=label).close()
 
 
-def _load(args: argparse.Namespace):
-    from bench_matrix.matrix import load_matrix
-    from bench_matrix.registry import available
-    from bench_matrix.workspace import Workspace
-
-    matrix = load_matrix(args.matrix, backends=list(available()))
-    warn(matrix.warnings)
-    return matrix, Workspace(args.workspace)
-
-
-def warn(warnings: tuple[str, ...]) -> None:
-    """A matrix's warnings (retired keys it still uses), on stderr."""
-    from rich.console import Console
-
-    console = Console(stderr=True)
-    for warning in warnings:
-        console.print("[yellow]warning:[/] ", end="", highlight=False)
-        console.print(warning, markup=False, highlight=False, soft_wrap=True)
-
-
 def _run(args: argparse.Namespace, console) -> int:
     from bench_matrix.cli_auto import matrix_of
-    from bench_matrix.cli_verdict import print_run_verdict, remember
-    from bench_matrix.executors import open_executor
-    from bench_matrix.executors.local import probe
+    from bench_matrix.cli_verdict import print_run_verdict
     from bench_matrix.matrix.require import parse_require
-    from bench_matrix.plan import resolve
     from bench_matrix.plan_view import show_inputs
-    from bench_matrix.runner import Runner
+    from bench_matrix.run import run
     from bench_matrix.selection import Shard
-    from bench_matrix.store import ResultStore
 
     shard = Shard.parse(args.shard) if args.shard is not None else Shard()
     given, args.matrix = args.matrix, matrix_of(args, console)
-    matrix, ws = _load(args)
+    matrix, ws = load(args.matrix, args.workspace)
     filters, overrides = _selected(args), parse_require(args.require)
-    if args.results is None:
-        ws.root.mkdir(parents=True, exist_ok=True)  # checked writable before
-    store = ResultStore(args.results or ws.results, label="--results" if args.results else "results file")
-    console.print(f"[bold]bench-matrix {__version__}[/] · {matrix.path} · results in "
-                  f"{args.results or ws.results}", highlight=False)
-    executor = None
-    try:
-        remember(store, matrix)
-        connecting = {"ray": "connecting to the Ray cluster (or starting one here) …",
-                      "ssh": "logging in to the devices …"}.get(args.executor)
-        with console.status(connecting) if connecting else contextlib.nullcontext():
-            executor = open_executor(args.executor, ws, args.address, ssh_options(args, args.device))
-        plan = resolve(matrix, ws, probe)
+    store = open_store(matrix, ws, args.results, console)
+    with open_run(matrix, ws, store, lambda ws: _connect(args, console, ws)) as (plan, executor):
         show_inputs(console, plan, filters, automatic=args.matrix != given)
-        counts = Runner(plan, ws, store, executor, console, args.label, shard).run(filters, args.force)
-    finally:
-        store.close()
-        if executor is not None:
-            executor.close()
+        counts = run(plan, ws, store, executor, console, filters, args.force, args.label, shard)
     invalid = len(plan.by_state("invalid"))
     console.print(f"[bold]done:[/] {counts['ok']} ok, {counts['skipped']} skipped, {counts['failed']} failed, "
                   f"{counts['cached']} already stored" + (f"; {invalid} combinations are not valid "
                                                           f"(`bench-matrix plan` says why)" if invalid else ""))
-    print_run_verdict(args.results or ws.results, matrix, overrides, console)
+    print_run_verdict(results_file(args), matrix, overrides, console)
     console.print("Next: [bold]bench-matrix report[/]", highlight=False)
     for why in executor.lost().values():
         console.print(f"{why}; the cells given to it failed", style="red", markup=False, highlight=False)
     return 1 if executor.lost() else 0
+
+
+def _connect(args: argparse.Namespace, console, ws: Workspace):
+    """The executor --executor names, connected to while the console says so."""
+    from bench_matrix.executors import open_executor
+
+    connecting = {"ray": "connecting to the Ray cluster (or starting one here) …",
+                  "ssh": "logging in to the devices …"}.get(args.executor)
+    with console.status(connecting) if connecting else contextlib.nullcontext():
+        return open_executor(args.executor, ws, args.address, ssh_options(args, args.device))
 
 
 def _plan(args: argparse.Namespace, console) -> int:
@@ -246,7 +218,7 @@ def _plan(args: argparse.Namespace, console) -> int:
     from bench_matrix.plan_view import show_plan
 
     given, args.matrix = args.matrix, matrix_of(args, console)
-    matrix, ws = _load(args)
+    matrix, ws = load(args.matrix, args.workspace)
     filters = _selected(args)
     show_plan(console, resolve(matrix, ws, probe), ws, filters, args.results, args.show_all,
               automatic=args.matrix != given)
@@ -259,7 +231,7 @@ def _report(args: argparse.Namespace, console) -> int:
     from bench_matrix.cli_verdict import gate, judging
     from bench_matrix.report import View, load_judged, write_loaded
 
-    results = args.results or args.workspace / "results.sqlite"
+    results = results_file(args)
     view = View(args.run, _values(args, VIEW_KEYS))
     loaded = load_judged(results, view, judging(args), with_samples=args.format in ("table", "md", "html"))
     write_loaded(loaded, args.format, args.out, console)

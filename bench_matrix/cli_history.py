@@ -1,14 +1,24 @@
 """The history commands of `bench-matrix`: runs (list a store's runs), compare (two runs or stores, as a CI
-gate) and merge (stores of several machines or shards into one)."""
+gate; with --remeasure, both sides' artifacts timed again here first) and merge (stores of several machines or
+shards into one)."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Mapping
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from bench_matrix.cli_open import load, open_run, results_file
 from bench_matrix.errors import UserError
+
+if TYPE_CHECKING:
+    from bench_matrix.jobs.results import Measured
+    from bench_matrix.measurement import Speedup
+    from bench_matrix.report.analysis.metric_change import Side
+    from bench_matrix.store import CellRecord
 
 COMPARE_FORMATS = ("table", "md", "json")
 COUNTED = ("ok", "skipped", "failed")
@@ -51,22 +61,18 @@ def add_commands(sub: Any) -> None:
     merge.set_defaults(handler=_merge)
 
 
-def default_store(args: argparse.Namespace) -> Path:
-    return args.results or args.workspace / "results.sqlite"
-
-
 def _runs(args: argparse.Namespace, console) -> int:
     from rich.table import Table
 
     from bench_matrix.store import ResultStore
 
     label = "--results" if args.results else "results file"
-    store = ResultStore(default_store(args), readonly=True, label=label)
+    store = ResultStore(results_file(args), readonly=True, label=label)
     try:
         runs = store.runs()
     finally:
         store.close()
-    table = Table(title=f"runs in {default_store(args)}")
+    table = Table(title=f"runs in {results_file(args)}")
     for column in ("id", "label", "host", "matrix", "started", "finished", *COUNTED, "wall s"):
         table.add_column(column, overflow="fold")
     for run in runs:
@@ -86,12 +92,10 @@ def _compare(args: argparse.Namespace, console) -> int:
     if not 0 < args.alpha < 1:
         raise UserError(f"--alpha {args.alpha}: give a significance level between 0 and 1, such as 0.05")
     thresholds = dict(parse_threshold(text) for text in args.threshold)
-    base, new = (side(spec, default_store(args)) for spec in (args.base, args.new))
+    base, new = (side(spec, results_file(args)) for spec in (args.base, args.new))
     twins = None
     if args.remeasure:
-        from bench_matrix.cli_remeasure import remeasured
-
-        base, new, twins = remeasured(base, new, args.matrix, args.workspace)
+        base, new, twins = _remeasured(base, new, args.matrix, args.workspace)
     elif args.matrix:
         raise UserError("--matrix names the matrix to remeasure from: use it with --remeasure")
     result = compare(base, new, thresholds, args.alpha, twins=twins)
@@ -112,7 +116,7 @@ def _compare(args: argparse.Namespace, console) -> int:
     return 1 if result.regressions else 0
 
 
-def side(spec: str, store_path: Path):
+def side(spec: str, store_path: Path) -> Side:
     """One side of a comparison (with its models' tasks): a run of `store_path`, a store file or
     STORE@RUN."""
     from bench_matrix.report import View, load
@@ -157,3 +161,56 @@ def _merge(args: argparse.Namespace, console) -> int:
                           highlight=False, markup=False, soft_wrap=True)
     console.print(f"Next: bench-matrix report --results {args.into}", highlight=False, markup=False)
     return 0
+
+
+def _remeasured(base: Side, new: Side, matrix: Path | None, workspace: Path
+                ) -> tuple[Side, Side, dict[str, Speedup] | None]:
+    """Both sides with their cells' artifacts timed again here, both in the same rounds (remeasure.py): the
+    remeasured cells' figures and samples, and each one's base time ÷ new time (empty where not paired)."""
+    from rich.console import Console
+
+    from bench_matrix.measurement import Speedup
+    from bench_matrix.remeasure import BASE, NEW, remeasure, twins
+
+    console = Console(stderr=True)  # stdout carries the comparison
+    found = twins(base.records, new.records)
+    loaded, ws = load(matrix or _matrix_of(new), workspace)
+    with open_run(loaded, ws) as (plan, executor):
+        result = remeasure(plan, ws, executor, console, found)
+    console.print(f"remeasured {len(result.measured)} cells here, both sides in the same rounds",
+                  highlight=False)
+    for key, why in sorted(result.missing.items()):
+        console.print(f"not remeasured (judged on the stored samples): {key}: {why}", highlight=False,
+                      markup=False, soft_wrap=True)
+    ratios = {key: sides[NEW].metrics.speedup or Speedup() for key, sides in result.measured.items()}
+    return (_side(base, {key: sides[BASE] for key, sides in result.measured.items()}),
+            _side(new, {key: sides[NEW] for key, sides in result.measured.items()}),
+            ratios or None)
+
+
+def _matrix_of(side: Side) -> Path:
+    """The one matrix file the side's records came from."""
+    named = sorted({record.matrix for record in side.records if record.matrix})
+    if len(named) != 1 or not Path(named[0]).is_file():
+        found = ", ".join(named) or "none"
+        raise UserError(f"--remeasure: the new side's records name the matrix file(s) {found}, not one "
+                        f"that is here; give the matrix the cells come from with --matrix FILE")
+    return Path(named[0])
+
+
+def _side(side: Side, measured: Mapping[str, Measured]) -> Side:
+    """The side with its remeasured cells' figures (no speed-up: the pairing is the twins') and samples."""
+    from bench_matrix.measure.stats import unpack_samples
+
+    records = [_record(r, measured[r.cell.key]) if r.cell.key in measured else r for r in side.records]
+    samples, batches = dict(side.samples), dict(side.batches)
+    for key, found in measured.items():
+        samples[key] = unpack_samples(found.samples["latency_ms"])
+        if "batch_ms" in found.samples:
+            batches[key] = unpack_samples(found.samples["batch_ms"])
+    label = f"{side.label} (remeasured)" if measured else side.label
+    return replace(side, label=label, records=records, samples=samples, batches=batches)
+
+
+def _record(record: CellRecord, found: Measured) -> CellRecord:
+    return replace(record, metrics=replace(found.metrics, speedup=None), env=found.env)

@@ -81,7 +81,7 @@ def fixed_cost(project: Path, address: str) -> dict[str, float]:
     begin = time.perf_counter()
     executor = RayExecutor(ws, address)
     connected = time.perf_counter()
-    executor.decide(plan, [p for p in plan.cells if p.state != "invalid"])
+    executor.probes(plan.matrix, [p for p in plan.cells if p.state != "invalid"])
     probed = time.perf_counter()
     executor.close()
     return {"connect_s": connected - begin, "probe_s": probed - connected}
