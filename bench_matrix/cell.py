@@ -1,5 +1,5 @@
 """A cell: one model through one backend with one strategy, precision and target; what a backend says of a
-combination (its verdict, by key) and what the plan decides of a cell."""
+combination (its ruling, by key) and what the plan decides of a cell."""
 
 from __future__ import annotations
 
@@ -11,16 +11,16 @@ from bench_matrix.strategy import StrategySpec
 
 PlanState = Literal["run", "skip", "invalid"]
 # (backend, framework, conversion kind, precision, target, source format, conversion options as JSON, training
-# key as JSON or ""): everything a backend needs to judge a combination before any model is loaded (after a
+# key as JSON or ""): everything a backend needs to rule on a combination before any model is loaded (after a
 # fine-tuning, the format converted is the trainer's output, which the probe substitutes)
-VerdictKey = tuple[str, str, str, str, str, str, str, str]
-# (framework, source format, training steps as JSON, task): what a trainer needs to judge a fine-tuning
+RulingKey = tuple[str, str, str, str, str, str, str, str]
+# (framework, source format, training steps as JSON, task): what a trainer needs to rule on a fine-tuning
 # strategy
 TrainingKey = tuple[str, str, str, str]
 
 
 @dataclass(frozen=True)
-class Verdict:
+class Ruling:
     """A backend's answer for one combination: not valid (why), or valid but not runnable here (why)."""
 
     invalid: str | None = None
@@ -94,4 +94,4 @@ class CellPlan:
     log: Path | None = field(default=None, compare=False)
     fingerprint: str = ""
     scenarios: tuple[Planned, ...] = ()  # measured after the latency scenario, in order
-    judged_on: str | None = None  # the host that judged the cell (a device), when not this machine
+    ruled_on: str | None = None  # the host that ruled on the cell (a device), when not this machine

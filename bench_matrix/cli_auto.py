@@ -109,9 +109,9 @@ def _found(request: Request, ws: Workspace) -> Found:
     keys = tuple((b, request.framework, s, p, t, request.format, "{}", "") for b, s, p, t in combos)
     ws.root.mkdir(parents=True, exist_ok=True)
     probed = probe(ProbeJob(ws, tuple(sorted({c[0] for c in combos})), keys, (), (file,)))
-    judged = {c: (v.invalid or v.skip) for c, v in zip(combos, (probed.verdicts[k] for k in keys))}
+    ruled = {c: (v.invalid or v.skip) for c, v in zip(combos, (probed.rulings[k] for k in keys))}
     batches = probed.batches.get(str(request.path)) or {}
-    return found(request.framework, supports, slow, judged, probed.inputs.get(str(request.path)),
+    return found(request.framework, supports, slow, ruled, probed.inputs.get(str(request.path)),
                  min(batches.values(), default=None))
 
 

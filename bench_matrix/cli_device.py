@@ -115,7 +115,7 @@ def _cpu_rows(env: dict[str, Any]) -> list[tuple[str, str]]:
 
 
 def _show_backends(console, link: Any, workspace: Path) -> int:
-    """Each backend's targets as the device's probe judges them; 1 when probing failed."""
+    """Each backend's targets as the device's probe rules on them; 1 when probing failed."""
     from bench_matrix.executors.base import Limits, Work
     from bench_matrix.executors.local import PROBE_TIMEOUT_S
     from bench_matrix.executors.ssh_flight import Flight
@@ -132,13 +132,13 @@ def _show_backends(console, link: Any, workspace: Path) -> int:
     if not ended.ok:
         console.print(f"  [red]probing the backends there failed:[/] {ended.error}", highlight=False)
         return 1
-    described, verdicts = ended.result.backends, ended.result.verdicts
+    described, rulings = ended.result.backends, ended.result.rulings
     for name in names:
         if error := described.get(name, {}).get("error"):
             console.print(f"  [bold]{name}[/]: [red]cannot be loaded there:[/] {error}", highlight=False)
             continue
-        statuses = [f"{target}: {target_status(name, target, verdicts)}" for target in vocabulary().targets
-                    if "not supported" not in target_status(name, target, verdicts)]
+        statuses = [f"{target}: {target_status(name, target, rulings)}" for target in vocabulary().targets
+                    if "not supported" not in target_status(name, target, rulings)]
         console.print(f"  [bold]{name}[/]: " + "; ".join(statuses), highlight=False, soft_wrap=True)
     console.print("[green]usable[/]: `bench-matrix run MATRIX --executor ssh --device "
                   f"{link.device.argument}` measures there", highlight=False)

@@ -16,7 +16,7 @@ from bench_matrix.errors import MatrixError
 from bench_matrix.images import layout_note
 from bench_matrix.jobs import ProbeJob
 from bench_matrix.jobs.results import Probe
-from bench_matrix.matrix.expand import combinations, judge, training_key, verdict_key
+from bench_matrix.matrix.expand import combinations, rule, training_key, ruling_key
 from bench_matrix.matrix.spec import DatasetSpec, Matrix, ModelSpec
 from bench_matrix.matrix.yamlpos import Located
 from bench_matrix.measure import env as environment
@@ -63,13 +63,13 @@ class Plan:
 
 
 def resolve(matrix: Matrix, workspace: Workspace, prober: Prober) -> Plan:
-    """Expand the matrix and judge every combination with the probe job, which `prober` runs in a child process
-    on this machine (imports stay out of the parent)."""
+    """Expand the matrix and rule on every combination with the probe job, which `prober` runs in a child
+    process on this machine (imports stay out of the parent)."""
     installed = list(available())
     cells, excluded = combinations(matrix, installed)
     probe = _probe(matrix, cells, installed, workspace, prober)
     baselines = probe.baselines()
-    expansion = judge(matrix, cells, excluded, probe.verdicts, probe.trainers, baselines)
+    expansion = rule(matrix, cells, excluded, probe.rulings, probe.trainers, baselines)
     models = {m.name: _model_plan(matrix, m, probe.inputs, baselines, workspace) for m in matrix.models}
     _check_models(matrix, models, probe)
     prints = Fingerprints(matrix, probe.backends)
@@ -83,18 +83,18 @@ def _probe(matrix: Matrix, cells: list[Cell], installed: list[str], workspace: W
            prober: Prober) -> Probe:
     """The probe of the cells' combinations and fine-tunings, the model files' inputs and the parameters of
     several-input factories' forward."""
-    judging = probe_job(matrix, cells, workspace)
+    job = probe_job(matrix, cells, workspace)
     files = tuple(sorted({(m.framework, m.source_format, str(m.file)) for m in matrix.models
                           if m.file is not None and (not m.inputs or m.source_format == "onnx")}))  # batch
-    names = tuple(sorted(set(installed) | set(judging.backends)))
+    names = tuple(sorted(set(installed) | set(job.backends)))
     factories = tuple(sorted({(m.factory, tuple(map(str, m.python_path))) for m in matrix.models
                               if m.factory and _several_inputs(matrix, m)}))
-    return prober(replace(judging, backends=names, model_files=files, factories=factories))
+    return prober(replace(job, backends=names, model_files=files, factories=factories))
 
 
 def probe_job(matrix: Matrix, cells: list[Cell], workspace: Workspace) -> ProbeJob:
-    """The probe job judging the cells' combinations and fine-tunings (alone: on an executor's machine)."""
-    keys = tuple(sorted({verdict_key(matrix, c) for c in cells}))
+    """The probe job ruling on the cells' combinations and fine-tunings (alone: on an executor's machine)."""
+    keys = tuple(sorted({ruling_key(matrix, c) for c in cells}))
     training = tuple(sorted({k for c in cells if (k := training_key(matrix, c))}))
     return ProbeJob(workspace, tuple(sorted({k[0] for k in keys})), keys, training)
 

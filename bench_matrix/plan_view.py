@@ -12,7 +12,7 @@ from rich.table import Table
 from bench_matrix.cell import CellPlan
 from bench_matrix.executors.local import probe_here
 from bench_matrix.jobs import ProbeJob
-from bench_matrix.cell import Verdict, VerdictKey
+from bench_matrix.cell import Ruling, RulingKey
 from bench_matrix.measure import env as environment
 from bench_matrix.plan import ModelPlan, Plan, defaulted, matrix_line, timed_inputs
 from bench_matrix.registry import available, vocabulary
@@ -165,7 +165,7 @@ def show_backends(console: Console, ws: Workspace) -> None:
     if not ended.ok:
         console.print(f"[red]probing the backends failed:[/] {escape(ended.error or '')}")
         return
-    described, verdicts = ended.result.backends, ended.result.verdicts
+    described, rulings = ended.result.backends, ended.result.rulings
     targets = list(vocabulary().targets)
     for name, entry in entries.items():
         info = described[name]
@@ -186,14 +186,14 @@ def show_backends(console: Console, ws: Workspace) -> None:
             grid.add_row("supports", f"{'/'.join(s['frameworks'])}: {', '.join(s['strategies'])} at "
                                      f"{', '.join(s['precisions'])} on {', '.join(s['targets'])}")
         for target in targets:
-            grid.add_row(target, target_status(name, target, verdicts))
+            grid.add_row(target, target_status(name, target, rulings))
         grid.add_row("versions", escape(", ".join(f"{k} {v}" for k, v in info["versions"].items()) or "—"))
         console.print(Padding(grid, (0, 0, 1, 2)))
 
 
-def target_status(backend: str, target: str, verdicts: dict[VerdictKey, Verdict]) -> str:
+def target_status(backend: str, target: str, rulings: dict[RulingKey, Ruling]) -> str:
     """ready / not supported / the skip reasons, with the precisions they concern."""
-    mine = {key[3]: v.skip for key, v in verdicts.items() if key[0] == backend and key[4] == target}
+    mine = {key[3]: v.skip for key, v in rulings.items() if key[0] == backend and key[4] == target}
     if not mine:
         return "[dim]not supported[/]"
     blocked = {}

@@ -221,8 +221,8 @@ class StoreOutlet:
         self.counts[record.status] += 1
 
     def _skipped_before(self, p: CellPlan) -> bool:
-        """Whether the judging host's newest record of a cell to skip already skips it for the same reason."""
-        record = self.store.latest(p.cell, p.judged_on or self.host)
+        """Whether the ruling host's newest record of a cell to skip already skips it for the same reason."""
+        record = self.store.latest(p.cell, p.ruled_on or self.host)
         return record is not None and (record.status, record.reason, record.fingerprint) == (
             "skipped", p.reason, p.fingerprint)
 
@@ -230,12 +230,12 @@ class StoreOutlet:
                 metrics: Measurement | None = None, env: dict | None = None, artifact: str | None = None
                 ) -> CellRecord:
         return CellRecord(cell=p.cell, status=status, reason=reason, metrics=metrics or Measurement(),
-                          artifact_path=artifact, env=env or _judged_env(p), started_at=started,
+                          artifact_path=artifact, env=env or _ruled_env(p), started_at=started,
                           finished_at=now(), fingerprint=p.fingerprint, matrix=str(self.matrix.path),
                           run_id=self.run_id)
 
 
-def _judged_env(p: CellPlan) -> dict:
-    """This machine's facts, stored under the host that judged the cell (a device that skipped it)."""
+def _ruled_env(p: CellPlan) -> dict:
+    """This machine's facts, stored under the host that ruled on the cell (a device that skipped it)."""
     env = environment.capture()
-    return {**env, "host": p.judged_on} if p.judged_on else env
+    return {**env, "host": p.ruled_on} if p.ruled_on else env

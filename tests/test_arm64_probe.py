@@ -129,8 +129,8 @@ def test_a_device_is_asked_whether_it_can_run_a_cell_not_whether_it_could_conver
     key = ("tflite", "tensorflow", "none", "fp32", "cpu", "keras", "{}", "")
     here = probe(ProbeJob(Workspace(tmp_path), ("tflite",), (key,)))
     there = probe(ProbeJob(Workspace(tmp_path), ("tflite",), (key,), measure_only=True))
-    assert "TensorFlow is not installed" in (here.verdicts[key].skip or "")
-    assert there.verdicts[key].skip is None
+    assert "TensorFlow is not installed" in (here.rulings[key].skip or "")
+    assert there.rulings[key].skip is None
 
 
 def _hidden(monkeypatch, *modules: str) -> None:

@@ -14,7 +14,8 @@ INT8 = ("openvino", "onnx", "ptq_static", "int8", "cpu", "onnx", "{}", "")
 
 def _skip(monkeypatch, tmp_path, measure_only: bool) -> str | None:
     monkeypatch.setitem(sys.modules, "nncf", None)  # importlib.util.find_spec("nncf") is None: not installed
-    return probe(ProbeJob(Workspace(tmp_path), ("openvino",), (INT8,), measure_only=measure_only)).verdicts[INT8].skip
+    job = ProbeJob(Workspace(tmp_path), ("openvino",), (INT8,), measure_only=measure_only)
+    return probe(job).rulings[INT8].skip
 
 
 def test_a_device_runs_openvino_int8_without_nncf(monkeypatch, tmp_path):

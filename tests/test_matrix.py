@@ -9,8 +9,8 @@ import pytest
 
 from bench_matrix.errors import MatrixError
 from bench_matrix.matrix import load_matrix
-from bench_matrix.matrix.expand import training_key, combinations, judge, verdict_key
-from bench_matrix.cell import Verdict
+from bench_matrix.matrix.expand import training_key, combinations, rule, ruling_key
+from bench_matrix.cell import Ruling
 from bench_matrix.matrix.extended import schema_json
 from bench_matrix.matrix.schema import PRECISIONS
 from bench_matrix.matrix.spec import DatasetSpec
@@ -164,16 +164,16 @@ include:
     cells, excluded = combinations(matrix, ["x", "y", "z"])
     assert excluded == 2  # y x ptq_dynamic x {fp32, int8}
     assert len(cells) == 2 * 2 * 2 - 2 + 1
-    verdicts = {}
+    rulings = {}
     for cell in cells:
-        key = verdict_key(matrix, cell)
+        key = ruling_key(matrix, cell)
         if key[2] == "none" and key[3] == "int8":
-            verdicts[key] = Verdict(invalid="none at int8 is not a thing")
+            rulings[key] = Ruling(invalid="none at int8 is not a thing")
         elif key[4] == "cuda":
-            verdicts[key] = Verdict(skip="no GPU")
+            rulings[key] = Ruling(skip="no GPU")
         else:
-            verdicts[key] = Verdict()
-    expansion = judge(matrix, cells, excluded, verdicts)
+            rulings[key] = Ruling()
+    expansion = rule(matrix, cells, excluded, rulings)
     states = {p.cell.key: (p.state, p.reason) for p in expansion.cells}
     assert states["a/y/none/fp16/cuda"] == ("skip", "no GPU")
     assert states["a/x/none/int8/cpu"][0] == "invalid"
@@ -184,14 +184,16 @@ def test_training_strategies_need_a_trainer_and_backends_are_asked_for_the_qat_k
     text = BASE.replace("strategy: [none, ptq_dynamic]", "strategy: [qat]") + "  backend: [x]\n"
     matrix = load_matrix(write(tmp_path, text))
     cells, excluded = combinations(matrix, ["x"])
-    verdicts = {verdict_key(matrix, c): Verdict() for c in cells}
-    assert {key[2] for key in verdicts} == {"qat"}  # a QAT model with no conversion step: the backend converts "qat"
-    unjudged = judge(matrix, cells, excluded, verdicts)
-    assert {p.state for p in unjudged.cells} == {"invalid"} and "no installed trainer" in unjudged.cells[0].reason
+    rulings = {ruling_key(matrix, c): Ruling() for c in cells}
+    assert {key[2] for key in rulings} == {"qat"}  # a QAT model, no conversion step: the backend converts "qat"
+    unruled = rule(matrix, cells, excluded, rulings)
+    assert {p.state for p in unruled.cells} == {"invalid"}
+    assert "no installed trainer" in unruled.cells[0].reason
     keys = {training_key(matrix, c) for c in cells}
-    refused = judge(matrix, cells, excluded, verdicts, {k: Verdict(invalid="qat: torch: no such thing") for k in keys})
+    refused = rule(matrix, cells, excluded, rulings, {k: Ruling(invalid="qat: torch: no such thing")
+                                                       for k in keys})
     assert refused.cells[0].reason == "qat: torch: no such thing"
-    able = judge(matrix, cells, excluded, verdicts, {k: Verdict(by="torch") for k in keys})
+    able = rule(matrix, cells, excluded, rulings, {k: Ruling(by="torch") for k in keys})
     assert {p.state for p in able.cells} == {"run"}
 
 

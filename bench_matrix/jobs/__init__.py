@@ -18,7 +18,7 @@ from bench_matrix.jobs.results import (
     Probe,
     Reference,
 )
-from bench_matrix.cell import TrainingKey, VerdictKey
+from bench_matrix.cell import TrainingKey, RulingKey
 from bench_matrix.matrix.requirements import Requirements
 from bench_matrix.matrix.spec import DatasetSpec, ModelSpec, Settings
 from bench_matrix.strategy import StrategySpec
@@ -59,18 +59,18 @@ class Job:
 
 @dataclass(frozen=True)
 class ProbeJob(Job):
-    """Describe backends, judge combinations and fine-tunings, read the inputs model files declare and the
+    """Describe backends, rule on combinations and fine-tunings, read the inputs model files declare and the
     parameters of factories' forward."""
 
     name = "probe"
     function = "bench_matrix.jobs.probe:probe"
     result = Probe
     backends: tuple[str, ...]
-    keys: tuple[VerdictKey, ...] | None = None  # None: every combination the backends declare
+    keys: tuple[RulingKey, ...] | None = None  # None: every combination the backends declare
     training: tuple[TrainingKey, ...] = ()
     model_files: tuple[tuple[str, str, str], ...] = ()  # (framework, source format, path) of user model files
     factories: tuple[tuple[str, tuple[str, ...]], ...] = ()  # (factory, python_path) whose forward to read
-    # a device's probe: conversion and fine-tuning happen where the run started, so only running is judged
+    # a device's probe: conversion and fine-tuning happen where the run started, so only running is ruled on
     measure_only: bool = False
 
     def reads(self) -> tuple[Path, ...]:

@@ -1,4 +1,4 @@
-"""The probe job: describe each backend, judge every combination and fine-tuning, read model files' inputs
+"""The probe job: describe each backend, rule on every combination and fine-tuning, read model files' inputs
 and the parameters of factories' forward."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from typing import Any
 from bench_matrix.backend import Backend
 from bench_matrix.jobs import ProbeJob
 from bench_matrix.jobs.results import Probe
-from bench_matrix.cell import TrainingKey, Verdict
+from bench_matrix.cell import TrainingKey, Ruling
 from bench_matrix.strategy import StrategySpec
 from bench_matrix.registry import BackendLoadError, load_backend
 from bench_matrix.sources.forward_call import Parameter
@@ -20,15 +20,15 @@ DEFAULT_FORMAT = {"pytorch": "state_dict", "tensorflow": "keras"}  # what built-
 
 
 def probe(job: ProbeJob) -> Probe:
-    """Backends described, verdicts per combination, trainers per fine-tuning, inputs per model file,
+    """Backends described, rulings per combination, trainers per fine-tuning, inputs per model file,
     forward's parameters per factory."""
     backends, described = _load(job.backends)
     keys = job.keys if job.keys is not None else _declared(backends)
-    trainers = {key: Verdict() for key in job.training} if job.measure_only else judge_training(job.training)
-    verdicts = {key: _verdict(backends, described, _converted(key, trainers), job.measure_only)
+    trainers = {key: Ruling() for key in job.training} if job.measure_only else rule_training(job.training)
+    rulings = {key: _ruling(backends, described, _converted(key, trainers), job.measure_only)
                 for key in keys}
     files = {path: _read(framework, fmt, path) for framework, fmt, path in job.model_files}
-    return Probe(described, verdicts, trainers,
+    return Probe(described, rulings, trainers,
                  inputs={path: read and read.inputs for path, read in files.items()},
                  forwards={factory: _forward(factory, path) for factory, path in job.factories},
                  batches={path: read.fixed_batch for path, read in files.items() if read})
@@ -59,21 +59,21 @@ def _declared(backends: dict[str, Backend | None]) -> list[tuple]:
             for t in s.targets]
 
 
-def _converted(key: tuple, trainers: dict[TrainingKey, Verdict]) -> tuple:
+def _converted(key: tuple, trainers: dict[TrainingKey, Ruling]) -> tuple:
     """The key with the format the backend will really convert: after a fine-tuning, the trainer's output."""
     *head, source_format, options, training = key
-    judged = trainers.get(tuple(json.loads(training))) if training else None
-    return (*head, (judged and judged.format) or source_format, options)
+    ruled = trainers.get(tuple(json.loads(training))) if training else None
+    return (*head, (ruled and ruled.format) or source_format, options)
 
 
-def _verdict(backends: dict[str, Backend | None], described: dict[str, Any], key: tuple, measure_only: bool
-             ) -> Verdict:
+def _ruling(backends: dict[str, Backend | None], described: dict[str, Any], key: tuple, measure_only: bool
+             ) -> Ruling:
     """Whether the backend implements the combination and can run it here (and, unless `measure_only`, read
     and convert its source here)."""
     name, framework, kind, precision, target, source_format, options = key
     b = backends[name]
     if b is None:
-        return Verdict(skip=described[name]["error"])
+        return Ruling(skip=described[name]["error"])
     step = StrategySpec(name=kind, kind=kind, options=json.loads(options))
     invalid = b.invalid_reason(framework, kind, precision, target) or b.option_reason(step, source_format)
     try:
@@ -84,10 +84,10 @@ def _verdict(backends: dict[str, Backend | None], described: dict[str, Any], key
         skip = "; ".join(r for r in reasons if r) or None
     except Exception as exc:  # a probe that crashes is a reason, not a crash of the run
         skip = f"probing {name} for {target}/{precision} failed: {type(exc).__name__}: {exc}"
-    return Verdict(invalid, skip)
+    return Ruling(invalid, skip)
 
 
-def judge_training(keys: tuple[TrainingKey, ...]) -> dict[TrainingKey, Verdict]:
+def rule_training(keys: tuple[TrainingKey, ...]) -> dict[TrainingKey, Ruling]:
     """For each (framework, source format, steps, task) the first installed trainer that can apply it, or why
     none can."""
     from bench_matrix.strategies.registry import TrainerLoadError, load_trainer, trainer_names
@@ -98,25 +98,26 @@ def judge_training(keys: tuple[TrainingKey, ...]) -> dict[TrainingKey, Verdict]:
             trainers.append(load_trainer(name))
         except TrainerLoadError as exc:
             errors.append(str(exc))
-    verdicts = {}
+    rulings = {}
     for framework, source_format, steps_json, task in keys:
         steps = tuple(StrategySpec.from_dict(s) for s in json.loads(steps_json))
         kinds = ", ".join(s.kind or "" for s in steps)
-        judged = [(t, t.steps_reason(steps, source_format, task)) for t in trainers if t.framework == framework]
-        able = [t for t, r in judged if not r]
+        ruled = [(t, t.steps_reason(steps, source_format, task)) for t in trainers
+                 if t.framework == framework]
+        able = [t for t, r in ruled if not r]
         key = (framework, source_format, steps_json, task)
         if not able:
-            why = "; ".join([f"{t.name}: {r}" for t, r in judged if r] + errors)
+            why = "; ".join([f"{t.name}: {r}" for t, r in ruled if r] + errors)
             why = why or f"no installed trainer fine-tunes {framework} models"
-            verdicts[key] = Verdict(invalid=f"{kinds}: {why}")
+            rulings[key] = Ruling(invalid=f"{kinds}: {why}")
             continue
         try:
             skip = able[0].probe()
         except Exception as exc:  # a probe that crashes is a reason, not a crash of the run
             skip = f"probing trainer {able[0].name} failed: {type(exc).__name__}: {exc}"
         written = able[0].output_format(steps, source_format)
-        verdicts[key] = Verdict(skip=skip, by=able[0].name, format=written)
-    return verdicts
+        rulings[key] = Ruling(skip=skip, by=able[0].name, format=written)
+    return rulings
 
 
 def _read(framework: str, source_format: str, path: str) -> FileInputs | None:

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from bench_matrix.cell import TrainingKey, Verdict, VerdictKey
+from bench_matrix.cell import TrainingKey, Ruling, RulingKey
 from bench_matrix.matrix.spec import Preprocess
 from bench_matrix.measurement import Measurement
 from bench_matrix.sources import SourceModel
@@ -24,13 +24,13 @@ class Result:
 
 @dataclass(frozen=True)
 class Probe(Result):
-    """The probe job's findings: each backend described, the verdict on each combination and fine-tuning, the
+    """The probe job's findings: each backend described, the ruling on each combination and fine-tuning, the
     inputs model files declare (None: not declared, or unreadable), the parameters of factories' forward, and
     the fixed batch sizes model files declare (path -> input name -> size)."""
 
     backends: dict[str, dict[str, Any]]
-    verdicts: dict[VerdictKey, Verdict]
-    trainers: dict[TrainingKey, Verdict]
+    rulings: dict[RulingKey, Ruling]
+    trainers: dict[TrainingKey, Ruling]
     inputs: dict[str, tuple[TensorSpec, ...] | None] = field(default_factory=dict)
     forwards: dict[str, tuple[Parameter, ...] | None] = field(default_factory=dict)
     batches: dict[str, dict[str, int]] = field(default_factory=dict)

@@ -8,7 +8,7 @@ import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-from bench_matrix.cell import Cell, CellPlan, TrainingKey, Verdict, VerdictKey
+from bench_matrix.cell import Cell, CellPlan, TrainingKey, Ruling, RulingKey
 from bench_matrix.matrix.schema import STRATEGY_KINDS
 from bench_matrix.strategy import QAT_KINDS
 from bench_matrix.matrix.spec import Matrix
@@ -53,7 +53,7 @@ def backend_kind(strategy: StrategySpec) -> StrategySpec:
     return step
 
 
-def verdict_key(matrix: Matrix, cell: Cell) -> VerdictKey:
+def ruling_key(matrix: Matrix, cell: Cell) -> RulingKey:
     step = backend_kind(matrix.strategies[cell.strategy])
     training = training_key(matrix, cell)
     return (cell.backend, cell.framework, step.kind or "none", cell.precision, cell.target,
@@ -92,17 +92,17 @@ def combinations(matrix: Matrix, installed: Iterable[str]) -> tuple[list[Cell], 
     return list(cells), excluded
 
 
-def judge(matrix: Matrix, cells: list[Cell], excluded: int, verdicts: Mapping[VerdictKey, Verdict],
-          trainers: Mapping[TrainingKey, Verdict] | None = None,
+def rule(matrix: Matrix, cells: list[Cell], excluded: int, rulings: Mapping[RulingKey, Ruling],
+          trainers: Mapping[TrainingKey, Ruling] | None = None,
           baselines: Mapping[str, str] | None = None) -> Expansion:
-    """Judge each candidate (invalid: no trainer, backend does not do it; skip; run) and resolve its steps and
-    its baseline cell (`baselines`: framework -> the backend computing its fp32 reference)."""
+    """Rule on each candidate (invalid: no trainer, backend does not do it; skip; run) and resolve its steps
+    and its baseline cell (`baselines`: framework -> the backend computing its fp32 reference)."""
     planned = []
     for cell in cells:
         strategy = matrix.strategies[cell.strategy]
         key = training_key(matrix, cell)
         training = (trainers or {}).get(key) if key else None
-        state, reason = _state(cell, key, training, verdicts[verdict_key(matrix, cell)])
+        state, reason = _state(cell, key, training, rulings[ruling_key(matrix, cell)])
         backend = (baselines or {}).get(cell.framework)
         baseline = Cell(cell.model, cell.framework, backend, "none", "fp32", "cpu") if backend else None
         planned.append(CellPlan(cell, state, reason, step=backend_kind(strategy), training=training_steps(strategy),
@@ -110,16 +110,16 @@ def judge(matrix: Matrix, cells: list[Cell], excluded: int, verdicts: Mapping[Ve
     return Expansion(cells=tuple(planned), excluded=excluded)
 
 
-def _state(cell: Cell, key: TrainingKey | None, training: Verdict | None,
-           verdict: Verdict) -> tuple[str, str | None]:
+def _state(cell: Cell, key: TrainingKey | None, training: Ruling | None,
+           ruling: Ruling) -> tuple[str, str | None]:
     if key and training is None:
         return "invalid", f"strategy {cell.strategy} fine-tunes the model; no installed trainer judged it"
     if training and training.invalid:
         return "invalid", training.invalid
-    if verdict.invalid:
-        return "invalid", verdict.invalid
-    if verdict.skip or (training and training.skip):
-        return "skip", "; ".join(r for r in (verdict.skip, training and training.skip) if r)
+    if ruling.invalid:
+        return "invalid", ruling.invalid
+    if ruling.skip or (training and training.skip):
+        return "skip", "; ".join(r for r in (ruling.skip, training and training.skip) if r)
     return "run", None
 
 
