@@ -34,34 +34,34 @@ def test_a_job_on_every_core_lets_waiting_openmp_threads_sleep_unless_told_other
 
 
 def test_crash_without_result_reports_signal_and_log_tail(tmp_path):
-    outcome = run_in_process(AbortJob(), tmp_path / "jobs", tmp_path / "log.txt", timeout_s=60)
-    assert not outcome.ok
-    assert "killed by signal SIGABRT" in outcome.error
-    assert "about to abort" in outcome.error and "\n" not in outcome.error  # the log's last line
+    ended = run_in_process(AbortJob(), tmp_path / "jobs", tmp_path / "log.txt", timeout_s=60)
+    assert not ended.ok
+    assert "killed by signal SIGABRT" in ended.error
+    assert "about to abort" in ended.error and "\n" not in ended.error  # the log's last line
 
 
 def test_exception_is_reported_with_its_location(tmp_path):
-    outcome = run_in_process(FailJob(), tmp_path / "jobs", tmp_path / "log.txt", timeout_s=60)
-    assert not outcome.ok and outcome.error.startswith("launcher_jobs: ValueError: bad model")  # where it rose
-    assert "\n" not in outcome.error and outcome.error.endswith(f"(traceback: {tmp_path / 'log.txt'})")
+    ended = run_in_process(FailJob(), tmp_path / "jobs", tmp_path / "log.txt", timeout_s=60)
+    assert not ended.ok and ended.error.startswith("launcher_jobs: ValueError: bad model")  # where it rose
+    assert "\n" not in ended.error and ended.error.endswith(f"(traceback: {tmp_path / 'log.txt'})")
     assert 'File "' in (tmp_path / "log.txt").read_text()  # the traceback is in the log
 
 
 def test_timeout_kills_the_child(tmp_path):
     begin = time.monotonic()
     phases = []
-    outcome = run_in_process(SleepJob(60), tmp_path / "jobs", tmp_path / "log.txt",
-                             timeout_s=2, on_phase=phases.append)
+    ended = run_in_process(SleepJob(60), tmp_path / "jobs", tmp_path / "log.txt",
+                           timeout_s=2, on_phase=phases.append)
     assert time.monotonic() - begin < 20  # killed, not left to sleep its 60 s: 10 times the limit's 2 s
-    assert "timed out after 2 s (in phase 'measure')" in outcome.error
+    assert "timed out after 2 s (in phase 'measure')" in ended.error
     assert phases == ["measure"]
 
 
 def test_value_and_phases_come_back(tmp_path):
     phases = []
-    outcome = run_in_process(EchoJob([1, "a"]), tmp_path / "jobs", tmp_path / "log.txt",
-                             timeout_s=60, on_phase=phases.append)
-    assert outcome.ok and outcome.result == [1, "a"]
+    ended = run_in_process(EchoJob([1, "a"]), tmp_path / "jobs", tmp_path / "log.txt",
+                           timeout_s=60, on_phase=phases.append)
+    assert ended.ok and ended.result == [1, "a"]
     assert phases == ["convert", "measure"]
     assert not list((tmp_path / "jobs").iterdir())  # job files are cleaned up
 
@@ -69,9 +69,9 @@ def test_value_and_phases_come_back(tmp_path):
 
 @pytest.mark.parametrize("timeout_s", [float("inf"), 1e30, 10**400])
 def test_a_limit_too_long_for_a_timer_waits_as_long_as_needed(tmp_path, timeout_s):
-    outcome = run_in_process(EchoJob(7), tmp_path / "jobs", tmp_path / "log.txt",
-                             timeout_s=timeout_s)
-    assert outcome.ok and outcome.result == 7
+    ended = run_in_process(EchoJob(7), tmp_path / "jobs", tmp_path / "log.txt",
+                           timeout_s=timeout_s)
+    assert ended.ok and ended.result == 7
 
 
 @pytest.mark.parametrize("timeout_s", [float("nan"), 0, -1.0])

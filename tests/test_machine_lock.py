@@ -148,11 +148,11 @@ def release_once_waiting(holder: subprocess.Popen, events: list[str]) -> Callabl
 def test_the_launcher_does_not_count_the_wait_against_the_time_limit(tmp_path):
     holder = start_holder("long run")
     events: list[str] = []
-    outcome = run_in_process(SlotJob(0.1), tmp_path / "jobs", tmp_path / "log.txt", timeout_s=1,
-                             on_phase=release_once_waiting(holder, events),
-                             tick=lambda: events.append("<tick>"))
-    assert outcome.ok, outcome.error
-    assert outcome.result["waited_s"] >= 2.0
+    ended = run_in_process(SlotJob(0.1), tmp_path / "jobs", tmp_path / "log.txt", timeout_s=1,
+                           on_phase=release_once_waiting(holder, events),
+                           tick=lambda: events.append("<tick>"))
+    assert ended.ok, ended.error
+    assert ended.result["waited_s"] >= 2.0
     phases = [e for e in events if e != "<tick>"]
     assert phases[0] == "load" and phases[-1] == "measure" and len(phases) == 3
     assert phases[1].startswith(f"waiting for the timing phase of pid {holder.pid} ")
@@ -164,10 +164,10 @@ def test_the_launcher_does_not_count_the_wait_against_the_time_limit(tmp_path):
 
 def test_the_time_limit_still_applies_after_the_wait(tmp_path):
     holder = start_holder("long run")
-    outcome = run_in_process(SlotJob(60), tmp_path / "jobs", tmp_path / "log.txt", timeout_s=1,
-                             on_phase=release_once_waiting(holder, []))
-    assert not outcome.ok  # killed after the wait (in 'measure'), which was longer than the limit
+    ended = run_in_process(SlotJob(60), tmp_path / "jobs", tmp_path / "log.txt", timeout_s=1,
+                           on_phase=release_once_waiting(holder, []))
+    assert not ended.ok  # killed after the wait (in 'measure'), which was longer than the limit
     found = re.search(r"timed out after 1 s \(in phase 'measure', not counting (\d+) s waiting for the "
-                      r"timing lock\)", outcome.error)
-    assert found and int(found.group(1)) >= 2, outcome.error
+                      r"timing lock\)", ended.error)
+    assert found and int(found.group(1)) >= 2, ended.error
     finish(holder)

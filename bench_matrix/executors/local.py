@@ -54,8 +54,8 @@ class LocalExecutor(Executor):
         if job.timed:
             measured = resolve(job.function)(job, self.workspace.jobs, limits.log.parent, on_phase)
             return Ended(work, (job,), (measured,))
-        outcome = run_in_process(job, self.workspace.jobs, limits.log, limits.timeout_s, limits.threads,
-                                 on_phase, tick)
-        if not outcome.ok:
-            return Ended(work, (job,), (), outcome.error, outcome.user_error, environment.capture())
-        return Ended(work, (job,), (outcome.result,))
+        ended = run_in_process(job, self.workspace.jobs, limits.log, limits.timeout_s, limits.threads,
+                               on_phase, tick)
+        if not ended.ok:
+            return Ended(work, (job,), (), ended.error, ended.user_error, environment.capture())
+        return Ended(work, (job,), (ended.result,))

@@ -26,7 +26,7 @@ THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"
 
 
 @dataclass(frozen=True)
-class Outcome:
+class ProcessEnded:
     """How a child ended: its job's typed result, or why it failed (one line; the traceback is in the log)."""
 
     result: Any = None
@@ -40,7 +40,7 @@ class Outcome:
 
 def run_in_process(job: Any, workdir: Path, log: Path, timeout_s: float, threads: int | None = None,
                    on_phase: Callable[[str], None] = lambda _: None,
-                   tick: Callable[[], None] = lambda: None) -> Outcome:
+                   tick: Callable[[], None] = lambda: None) -> ProcessEnded:
     """Start `python -m bench_matrix.executors.child` on `job` (its class names the function that runs it and
     its result's type); kill its process group at `timeout_s`, not counting waits for the timing lock."""
     if not timeout_s > 0:  # also NaN
@@ -65,9 +65,9 @@ def run_in_process(job: Any, workdir: Path, log: Path, timeout_s: float, threads
         if timed_out:
             waited = (f", not counting {deadline.waited_s:.0f} s waiting for the timing lock"
                       if deadline.waited_s else "")
-            return Outcome(error=f"timed out after {timeout_s:g} s (in phase '{last_phase}'{waited}); "
-                                 f"raise settings.timeout_s if this cell needs longer. Log: {log}")
-        return _outcome(job, proc, result_path, log, last_phase)
+            return ProcessEnded(error=f"timed out after {timeout_s:g} s (in phase '{last_phase}'{waited}); "
+                                      f"raise settings.timeout_s if this cell needs longer. Log: {log}")
+        return _ended(job, proc, result_path, log, last_phase)
     finally:
         job_path.unlink(missing_ok=True)
         result_path.unlink(missing_ok=True)
@@ -99,17 +99,17 @@ def start_child(job: Any, args: list[str], log: Path, threads: int | None, varia
                                 pass_fds=fds, env=env, start_new_session=True)
 
 
-def _outcome(job: Any, proc: subprocess.Popen, result_path: Path, log: Path, last_phase: str) -> Outcome:
+def _ended(job: Any, proc: subprocess.Popen, result_path: Path, log: Path, last_phase: str) -> ProcessEnded:
     """How a child that was not timed out ended: its typed result, its error, or how it died."""
     if result_path.is_file():
         result = json.loads(result_path.read_text())
         if result["ok"]:
-            return Outcome(result=from_json(type(job).result, result["value"]))
+            return ProcessEnded(result=from_json(type(job).result, result["value"]))
         if result.get("user_error"):  # the user's mistake: the message alone says what to fix
-            return Outcome(error=result["error"], user_error=True)
-        return Outcome(error=error_reason(result["error"], result.get("traceback", ""), log))
-    return Outcome(error=f"the process died ({describe_exit(proc.returncode)}) in phase '{last_phase}'; "
-                         f"the last line of {log}: {last_line(log)}")
+            return ProcessEnded(error=result["error"], user_error=True)
+        return ProcessEnded(error=error_reason(result["error"], result.get("traceback", ""), log))
+    return ProcessEnded(error=f"the process died ({describe_exit(proc.returncode)}) in phase '{last_phase}'; "
+                              f"the last line of {log}: {last_line(log)}")
 
 
 class _Deadline:

@@ -19,7 +19,7 @@ from bench_matrix.errors import UserError
 from bench_matrix.executors import ray_tasks
 from bench_matrix.executors.base import Ended, Executor, Limits, Phase, Tick, Work
 from bench_matrix.executors.local import PROBE_TIMEOUT_S
-from bench_matrix.executors.ray_tasks import NodeRun, Shipment
+from bench_matrix.executors.ray_tasks import NodeEnded, Shipment
 from bench_matrix.executors.shipping import pack
 from bench_matrix.jobs import Job
 from bench_matrix.jobs.results import MeasuredGroup
@@ -79,13 +79,13 @@ class RayExecutor(Executor):
         probed = {}
         for node, (ref, _) in refs.items():
             try:
-                run = self.ray.get(ref)
+                ended = self.ray.get(ref)
             except self.ray.exceptions.RayError as exc:  # the node died or cannot run tasks
-                run = NodeRun(node, node[:8], error=f"{type(exc).__name__}: {exc}")
-            self.hostnames[node] = run.host
-            failed = f"probing the node failed: {run.error}" if run.error else None
-            probed[node] = Probed(run.host, None, None if failed else run.result, failed)
-            self._devices.update({} if failed else run.result.devices())
+                ended = NodeEnded(node, node[:8], error=f"{type(exc).__name__}: {exc}")
+            self.hostnames[node] = ended.host
+            failed = f"probing the node failed: {ended.error}" if ended.error else None
+            probed[node] = Probed(ended.host, None, None if failed else ended.result, failed)
+            self._devices.update({} if failed else ended.result.devices())
         return probed
 
     def hosts(self) -> set[str]:
@@ -152,37 +152,37 @@ class RayExecutor(Executor):
     def _advance(self, ref: Any, flight: _Flight, files: Any) -> None:
         """A task ended: run the job that follows, or end the work; lost work runs again or fails."""
         try:
-            run: NodeRun = self.ray.get(ref)
+            ended: NodeEnded = self.ray.get(ref)
         except self.ray.exceptions.RayTaskError as exc:  # our code raised on the node: no retry
             self._ended.append(self._failed(flight, f"failed on the Ray node: {exc}"))
             return
         except self.ray.exceptions.RayError as exc:  # the worker, its node or an object was lost
             self._lost(flight, f"{type(exc).__name__}: {str(exc).strip().splitlines()[0]}")
             return
-        flight.node = run.node
-        self.hostnames.setdefault(run.node, run.host)
-        for path, (key, name) in run.made.items():
+        flight.node = ended.node
+        self.hostnames.setdefault(ended.node, ended.host)
+        for path, (key, name) in ended.made.items():
             self._shipped[path] = Shipment(key, name, files, member=path)
-        if run.error:
-            self._ended.append(Ended(flight.work, (flight.work.job,), (), run.error, run.user_error, run.env,
-                                     run.node))
+        if ended.error:
+            self._ended.append(Ended(flight.work, (flight.work.job,), (), ended.error, ended.user_error,
+                                     ended.env, ended.node))
         else:
-            self._ended.append(Ended(flight.work, (flight.work.job,), (self._placed(flight, run),),
-                                     where=run.node))
+            self._ended.append(Ended(flight.work, (flight.work.job,), (self._placed(flight, ended),),
+                                     where=ended.node))
 
-    def _placed(self, flight: _Flight, run: NodeRun) -> Any:
+    def _placed(self, flight: _Flight, ended: NodeEnded) -> Any:
         """A rounds job's result with where each cell ran and what Ray added (`env.ray`): waiting to be
         scheduled, shipping, measuring, returning; other results as they came."""
-        if not isinstance(run.result, MeasuredGroup):
-            return run.result
-        facts = {"node_id": run.node, "attempt": flight.attempt,
-                 "scheduled_s": round(run.timing["scheduled_s"], 4), "ship_s": round(run.timing["ship_s"], 4),
-                 "measure_s": round(run.timing["job_s"], 4),
-                 "returned_s": round(max(time.time() - run.timing["ended"], 0.0), 4)}
-        return replace(run.result, cells=tuple(
+        if not isinstance(ended.result, MeasuredGroup):
+            return ended.result
+        facts = {"node_id": ended.node, "attempt": flight.attempt,
+                 "scheduled_s": round(ended.timing["scheduled_s"], 4),
+                 "ship_s": round(ended.timing["ship_s"], 4), "measure_s": round(ended.timing["job_s"], 4),
+                 "returned_s": round(max(time.time() - ended.timing["ended"], 0.0), 4)}
+        return replace(ended.result, cells=tuple(
             replace(c, measured=replace(c.measured, env={**c.measured.env, "ray": facts}))
             if c.measured else c
-            for c in run.result.cells))
+            for c in ended.result.cells))
 
     def _lost(self, flight: _Flight, why: str) -> None:
         """Run lost work again, on the nodes still alive (work pinned to a node: on it, while it lives), or

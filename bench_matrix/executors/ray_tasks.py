@@ -32,7 +32,7 @@ class Shipment:
 
 
 @dataclass(frozen=True)
-class NodeRun:
+class NodeEnded:
     """How a job ended on a node: the node and its host, the job's result (paths as the driver names them) or
     why it failed, the outputs it packed (path -> content key and name) and how long each part took."""
 
@@ -68,7 +68,7 @@ def unpack(shipments: dict[str, Shipment], ws: Workspace) -> dict[str, str]:
 
 
 def run_on_node(job: Job, limits: Limits, shipments: dict[str, Shipment],
-                submitted: float) -> tuple[NodeRun, dict[str, bytes]]:
+                submitted: float) -> tuple[NodeEnded, dict[str, bytes]]:
     """Unpack what the job reads, run it here (log: the node's own, same name), pack the files its result
     names that it made; how it ended, and those packed files (the task's second return)."""
     import ray
@@ -81,13 +81,13 @@ def run_on_node(job: Job, limits: Limits, shipments: dict[str, Shipment],
     ended = LocalExecutor(ws).run(Work(here, dataclasses.replace(limits, log=ws.logs / limits.log.name)))
     back = {new: old for old, new in moved.items()}
     made = {str(p): pack(p) for p in (ended.result.files() if ended.ok else ()) if not _shipped(p, ws)}
-    run = NodeRun(ray.get_runtime_context().get_node_id(), environment.host_name(),
-                  result=relocate(ended.result, back, ws) if ended.ok else None,
-                  error=named_back(ended.error, back), user_error=ended.user_error, env=ended.env,
-                  made={path: (key, Path(path).name) for path, (key, _) in made.items()},
-                  timing={"scheduled_s": begin - submitted, "ship_s": unpacked - begin,
-                          "job_s": time.time() - unpacked, "ended": time.time()})
-    return run, {path: data for path, (_, data) in made.items()}
+    node_ended = NodeEnded(ray.get_runtime_context().get_node_id(), environment.host_name(),
+                           result=relocate(ended.result, back, ws) if ended.ok else None,
+                           error=named_back(ended.error, back), user_error=ended.user_error, env=ended.env,
+                           made={path: (key, Path(path).name) for path, (key, _) in made.items()},
+                           timing={"scheduled_s": begin - submitted, "ship_s": unpacked - begin,
+                                   "job_s": time.time() - unpacked, "ended": time.time()})
+    return node_ended, {path: data for path, (_, data) in made.items()}
 
 
 def _shipped(path: Path, ws: Workspace) -> bool:
