@@ -229,13 +229,13 @@ def _report(args: argparse.Namespace, console) -> int:
     from rich.console import Console
 
     from bench_matrix.cli_verdict import gate, judging
-    from bench_matrix.report import View, load_judged, write_loaded
+    from bench_matrix.report import View, load_judged, write_stored
 
     results = results_file(args)
     view = View(args.run, _values(args, VIEW_KEYS))
-    loaded = load_judged(results, view, judging(args), with_samples=args.format in ("table", "md", "html"))
-    write_loaded(loaded, args.format, args.out, console)
-    return gate(loaded.report, Console(stderr=True)) if args.check else 0
+    stored = load_judged(results, view, judging(args), with_samples=args.format in ("table", "md", "html"))
+    write_stored(stored, args.format, args.out, console)
+    return gate(stored.report, Console(stderr=True)) if args.check else 0
 
 
 def _backends(args: argparse.Namespace, console) -> int:

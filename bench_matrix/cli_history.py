@@ -123,16 +123,16 @@ def side(spec: str, store_path: Path) -> Side:
     from bench_matrix.report.analysis.metric_change import Side
 
     path, run = _split(spec, store_path)
-    loaded = load(path, View(run=run), with_samples=True)
-    hosts = sorted({r.host or "unknown" for r in loaded.records})
+    stored = load(path, View(run=run), with_samples=True)
+    hosts = sorted({r.host or "unknown" for r in stored.records})
     if len(hosts) > 1:
         raise UserError(f"{spec}: the store {path} holds records of {len(hosts)} hosts ({', '.join(hosts)}); "
                         f"name one run of it as {path}@RUN (`bench-matrix runs --results {path}` lists them)")
-    samples = {r.cell.key: loaded.samples[r.id] for r in loaded.records if r.id in loaded.samples}
-    batches = {r.cell.key: loaded.batches[r.id] for r in loaded.records if r.id in loaded.batches}
+    samples = {r.cell.key: stored.samples[r.id] for r in stored.records if r.id in stored.samples}
+    batches = {r.cell.key: stored.batches[r.id] for r in stored.records if r.id in stored.batches}
     label = f"{path}@{run}" if run and path != store_path else (f"run {run}" if run else str(path))
-    tasks = {m.name: m.task for m in loaded.report.models}
-    return Side(label=label, records=loaded.records, samples=samples, tasks=tasks, batches=batches)
+    tasks = {m.name: m.task for m in stored.report.models}
+    return Side(label=label, records=stored.records, samples=samples, tasks=tasks, batches=batches)
 
 
 def _split(spec: str, store_path: Path) -> tuple[Path, str | None]:

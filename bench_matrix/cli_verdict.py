@@ -81,8 +81,8 @@ def print_run_verdict(results: Path, matrix: Matrix, overrides: dict[str, Any], 
 
     names = frozenset(m.name for m in matrix.models)
     try:
-        loaded = load_judged(results, View(only={"model": names}), Judging(overrides=overrides))
+        stored = load_judged(results, View(only={"model": names}), Judging(overrides=overrides))
     except UserError:  # nothing of this matrix is stored
         return
-    if any(m.requirements is not None for m in loaded.report.models):
-        print_verdict(loaded.report.models, console)
+    if any(m.requirements is not None for m in stored.report.models):
+        print_verdict(stored.report.models, console)

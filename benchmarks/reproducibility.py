@@ -121,8 +121,8 @@ def table(first: list[CellRecord], second: list[CellRecord]) -> list[str]:
 
 def answers(workdir: Path, matrix: Path) -> list[str]:
     """Per model and target, both runs' recommended cells and verdicts; then `answers same N of M`."""
-    loaded = [load_judged(workdir / f"{label}.sqlite", judging=Judging(matrix)) for label in ("run1", "run2")]
-    judged = [{m.name: m for m in found.report.models} for found in loaded]
+    stored = [load_judged(workdir / f"{label}.sqlite", judging=Judging(matrix)) for label in ("run1", "run2")]
+    judged = [{m.name: m for m in found.report.models} for found in stored]
     lines, same, total = [], 0, 0
     for name in sorted(set(judged[0]) & set(judged[1])):
         one, two = judged[0][name], judged[1][name]

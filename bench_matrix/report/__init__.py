@@ -23,7 +23,7 @@ if TYPE_CHECKING:
 
 FORMATS = ("table", "md", "html", "json", "csv")
 VIEW_KEYS = ("host", "model", "backend")
-__all__ = ["FORMATS", "VIEW_KEYS", "Judging", "Loaded", "View", "load", "load_judged", "write_loaded",
+__all__ = ["FORMATS", "VIEW_KEYS", "Judging", "Stored", "View", "load", "load_judged", "write_stored",
            "write_report"]
 
 
@@ -40,9 +40,10 @@ class View:
 
 
 @dataclass(frozen=True)
-class Loaded:
-    """The records a view selected, their summary, the raw latencies and batch durations (ms) of the ok ones
-    by record id, and the requirements runs stored (by matrix path)."""
+class Stored:
+    """What a report is made of, read from a results store: the records a view selected, their summary, the
+    raw latencies and batch durations (ms) of the ok ones by record id, and the requirements runs stored (by
+    matrix path)."""
 
     records: list[CellRecord]
     report: Report
@@ -55,7 +56,7 @@ def _field(record: CellRecord, key: str) -> str:
     return (record.host or "unknown") if key == "host" else getattr(record.cell, key)
 
 
-def load(store_path: str | Path, view: View = View(), with_samples: bool = False) -> Loaded:
+def load(store_path: str | Path, view: View = View(), with_samples: bool = False) -> Stored:
     """Read the records a view selects, with the facts of a store; UserError when it is missing or nothing
     is selected."""
     path = Path(store_path)
@@ -85,15 +86,15 @@ def load(store_path: str | Path, view: View = View(), with_samples: bool = False
     finally:
         store.close()
     about = run_facts(run or runs[-1], len(runs)) if runs else {}
-    return Loaded(records, summarize(records, infos, about, history), _present(samples), _present(batches),
+    return Stored(records, summarize(records, infos, about, history), _present(samples), _present(batches),
                   requirements)
 
 
 def load_judged(store_path: str | Path, view: View = View(), judging: Judging = Judging(),
-                with_samples: bool = False) -> Loaded:
+                with_samples: bool = False) -> Stored:
     """`load`, with each model judged against its requirements (report/analysis/judging.py)."""
-    loaded = load(store_path, view, with_samples)
-    return replace(loaded, report=judged(loaded.report, loaded.requirements, judging))
+    stored = load(store_path, view, with_samples)
+    return replace(stored, report=judged(stored.report, stored.requirements, judging))
 
 
 def _present(series: dict[int, np.ndarray | None]) -> dict[int, np.ndarray]:
@@ -124,22 +125,22 @@ def write_report(store_path: str | Path, fmt: str, out_dir: str | Path, console:
     stdout)."""
     if fmt not in FORMATS:
         raise UserError(f"unknown report format '{fmt}'; choose one of: {', '.join(FORMATS)}")
-    loaded = load_judged(store_path, view, judging, with_samples=fmt in ("table", "md", "html"))
-    return write_loaded(loaded, fmt, Path(out_dir), console)
+    stored = load_judged(store_path, view, judging, with_samples=fmt in ("table", "md", "html"))
+    return write_stored(stored, fmt, Path(out_dir), console)
 
 
-def write_loaded(loaded: Loaded, fmt: str, out: Path, console: Console) -> list[Path]:
+def write_stored(stored: Stored, fmt: str, out: Path, console: Console) -> list[Path]:
     """Write a judged report in `fmt`; return the files written."""
     if fmt == "json":
         from bench_matrix.report.render.export import report_json
-        sys.stdout.write(report_json(loaded.records, loaded.report))
+        sys.stdout.write(report_json(stored.records, stored.report))
         sys.stdout.flush()
         return []
     if fmt == "csv":
         from bench_matrix.report.render.export import write_csv
-        paths = [write_csv(loaded.records, loaded.report, out / "results.csv")]
+        paths = [write_csv(stored.records, stored.report, out / "results.csv")]
     else:
-        paths = _pages(loaded, fmt, out, console)
+        paths = _pages(stored, fmt, out, console)
     if fmt == "table":
         console.print(f"Markdown report: {paths[0]} and {len(paths) - 2} model page(s); one file: "
                       f"{paths[-1]}", highlight=False, markup=False)
@@ -149,7 +150,7 @@ def write_loaded(loaded: Loaded, fmt: str, out: Path, console: Console) -> list[
     return paths
 
 
-def _pages(loaded: Loaded, fmt: str, out: Path, console: Console) -> list[Path]:
+def _pages(stored: Stored, fmt: str, out: Path, console: Console) -> list[Path]:
     """Plots, then the Markdown pages and/or the HTML file that embed them."""
     from bench_matrix.report.render.html import write_html
     from bench_matrix.report.render.markdown import write_pages
@@ -157,11 +158,11 @@ def _pages(loaded: Loaded, fmt: str, out: Path, console: Console) -> list[Path]:
     from bench_matrix.report.render.sections import section_plots
 
     out.mkdir(parents=True, exist_ok=True)
-    plots = {m.name: [*model_plots(m, loaded.samples, out / "plots"), *section_plots(m, out / "plots")]
-             for m in loaded.report.models}
+    plots = {m.name: [*model_plots(m, stored.samples, out / "plots"), *section_plots(m, out / "plots")]
+             for m in stored.report.models}
     if fmt == "table":
         from bench_matrix.report.render.terminal import print_report
-        print_report(loaded.report, console)
-    paths = write_pages(loaded.report, out, plots) if fmt != "html" else []
-    return [*paths, write_html(loaded.report, plots, out / "report.html")] if fmt != "md" else paths
+        print_report(stored.report, console)
+    paths = write_pages(stored.report, out, plots) if fmt != "html" else []
+    return [*paths, write_html(stored.report, plots, out / "report.html")] if fmt != "md" else paths
 
