@@ -16,7 +16,7 @@ from bench_matrix import data, hardware
 from bench_matrix.jobs import MeasureJob
 from bench_matrix.jobs.artifact import predict_all
 from bench_matrix.measure.gpu import GpuMemory
-from bench_matrix.measure.interference import Limits, Sampler
+from bench_matrix.measure.interference import LIMITS, Sampler
 from bench_matrix.measure.metrics import evaluate, non_finite_reason
 from bench_matrix.measure.schedule import LATENCY, Window
 from bench_matrix.measure.size import artifact_size
@@ -27,7 +27,6 @@ from bench_matrix.scenarios.timed import E2E, THROUGHPUT
 from bench_matrix.tensors import bind, resize, take
 
 LATENCY_INPUTS = 16
-LIMITS = Limits()  # a window with interference above these is dropped and taken again in a later round
 SHARE = {THROUGHPUT: 0.5}  # of settings.window_s: throughput's figures need fewer calls than the p50's
 WARMUP = {THROUGHPUT: 1}  # calls before a window: one batch warms up as the latency window's 2 calls do
 
