@@ -9,8 +9,8 @@ from typing import Any
 
 from bench_matrix.executors.answers import OpenAnswers
 from bench_matrix.matrix.requirements import Requirements
+from bench_matrix.measure.interference import LIMITS
 from bench_matrix.measure.schedule import LOOSE, Rounds, RoundsSettings, Timed
-from bench_matrix.scenarios.latency import LIMITS
 from bench_matrix.scenarios.timed import figures
 from rounds_sim import Machine, cells
 

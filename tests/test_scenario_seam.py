@@ -1,5 +1,5 @@
 """The scenario seam: generic modules never name a scenario or the driving workload; they reach scenarios
-through bench_matrix.scenarios only."""
+through bench_matrix.scenarios only (the core ones, latency among them, through base.CORE)."""
 
 from pathlib import Path
 
@@ -17,6 +17,7 @@ GENERIC = ["runner.py", "run.py", "remeasure.py", "plan.py", "cell.py", "jobs/__
                                                      "verdict_view", "pareto_marks", "pareto_layout")),
            *(f"report/analysis/{name}.py" for name in ("recommend", "judging", "pareto"))]
 SCENARIO = ("closed_loop", "closed loop", "closedloop", " laps", "simulator")
+CORE = ("scenarios.latency", "scenarios import latency")  # named by scenarios/base.py's CORE only
 WORKLOAD = ("driving", "circuit")
 
 
@@ -26,6 +27,19 @@ def test_generic_module_names_no_scenario(module: str) -> None:
     names = SCENARIO + (() if module in MATRIX_CORE else WORKLOAD)
     found = [name for name in names if name in text]
     assert not found, f"{module} names {found}: scenario-specific code belongs in bench_matrix/scenarios"
+
+
+@pytest.mark.parametrize("module", [m for m in GENERIC if not m.startswith("scenarios/")])
+def test_generic_module_reaches_core_scenarios_through_the_seam(module: str) -> None:
+    text = (ROOT / module).read_text()
+    assert not [name for name in CORE if name in text], f"{module} names the latency scenario's module"
+
+
+def test_core_scenarios_are_scenarios() -> None:
+    from bench_matrix.named import resolve
+    from bench_matrix.scenarios.base import CORE, Scenario
+
+    assert all(issubclass(resolve(name), Scenario) for name in CORE)
 
 
 def test_scenarios_keep_their_matrix_sections_and_fields() -> None:

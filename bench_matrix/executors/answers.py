@@ -12,11 +12,11 @@ from typing import Any
 
 from bench_matrix.jobs import RoundsJob
 from bench_matrix.matrix.requirements import Requirements
+from bench_matrix.measure.interference import LIMITS
 from bench_matrix.measure.schedule import LATENCY, RoundsSettings, Timed, spread
 from bench_matrix.measurement import Measurement
 from bench_matrix.ranking import Ranked, compare, rank, speedups
 from bench_matrix.registry import scenarios
-from bench_matrix.scenarios.latency import LIMITS
 from bench_matrix.scenarios.timed import SAMPLED, THROUGHPUT, figures
 from bench_matrix.verdict import PASS, UNCERTAIN, judge
 

@@ -16,12 +16,12 @@ from bench_matrix.executors.sessions import SessionProcess
 from bench_matrix.jobs import RoundsJob
 from bench_matrix.jobs.results import CellMeasured, Measured, MeasuredGroup
 from bench_matrix.measure import env as environment
+from bench_matrix.measure.interference import LIMITS
 from bench_matrix.measure.machine_lock import TimingWindow, timing_slot
 from bench_matrix.measure.rounds import Spread
 from bench_matrix.measure.schedule import (LATENCY, LOOSE, Rounds, RoundsSettings, SessionLost, Timed,
                                            measure_groups, spread)
 from bench_matrix.measurement import Measurement
-from bench_matrix.scenarios.latency import LIMITS
 from bench_matrix.scenarios.timed import SAMPLED, THROUGHPUT, figures
 
 DISTURBED_SHARE = 0.25  # more of a kind's windows disturbed than this marks the cell

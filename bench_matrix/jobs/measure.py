@@ -1,6 +1,6 @@
 """The measure job: load a cell's artifact once and keep it, serving timed windows of the executor's rounds
-(the latency scenario's Timer); then evaluate it and run the cell's planned scenarios with the loaded
-session (bench_matrix/scenarios)."""
+(the core scenarios' timers); then evaluate it and run the cell's planned scenarios with the loaded session
+(bench_matrix/scenarios)."""
 
 from __future__ import annotations
 
@@ -19,8 +19,7 @@ from bench_matrix.measurement import Measurement
 from bench_matrix.named import resolve
 from bench_matrix.phases import phase
 from bench_matrix.registry import load_backend
-from bench_matrix.scenarios import latency
-from bench_matrix.scenarios.base import Loaded, Outcome
+from bench_matrix.scenarios.base import CORE, Loaded, Outcome, Scenario, Windows
 
 
 @dataclass
@@ -28,27 +27,28 @@ class Served:
     """A cell's loaded session kept alive in its process: evaluated, windows on demand, then `finish`."""
 
     loaded: Loaded
-    timer: latency.Timer
-    evaluated: Outcome | None = None
+    core: tuple[Scenario, ...]
+    timers: dict[str, Windows]  # each kind of window -> the core scenario's timer serving it
+    evaluated: tuple[Outcome, ...] | None = None
 
     def evaluate(self) -> dict[str, Any]:
         """Evaluate the session (before its rounds): what its record holds besides the timed figures."""
-        self.evaluated = latency.run(self.loaded)
-        return self.evaluated.fields
+        self.evaluated = tuple(scenario.evaluate(self.loaded) for scenario in self.core)
+        return {k: v for outcome in self.evaluated for k, v in outcome.fields.items()}
 
     @property
     def kinds(self) -> tuple[str, ...]:
-        return self.timer.kinds
+        return tuple(self.timers)
 
     def window(self, kind: str, seconds: float) -> Window:
-        return self.timer.window(kind, seconds)
+        return self.timers[kind].window(kind, seconds)
 
     def finish(self) -> Measured:
-        """Evaluate the session unless it was (its peak memory read again now), then run each planned scenario
-        in order; the timed figures are the executor's to add."""
-        loaded = self.loaded
-        evaluated = latency.run(loaded) if self.evaluated is None else latency.peaked(self.evaluated)
-        outcomes = [evaluated, *(_run(planned, loaded) for planned in loaded.job.scenarios)]
+        """Evaluate the session unless it was (brought up to date now), then run each planned scenario in
+        order; the timed figures are the executor's to add."""
+        loaded, before = self.loaded, self.evaluated or (None,) * len(self.core)
+        evaluated = (scenario.evaluate(loaded, early) for scenario, early in zip(self.core, before))
+        outcomes = [*evaluated, *(_run(planned, loaded) for planned in loaded.job.scenarios)]
         metrics = Measurement.from_json({k: v for outcome in outcomes for k, v in outcome.fields.items()})
         samples = {k: v for outcome in outcomes for k, v in outcome.samples.items()}
         env = {**environment.capture(), "backend_versions": loaded.backend.versions(),
@@ -57,9 +57,11 @@ class Served:
 
 
 def open_session(job: MeasureJob) -> Served:
-    """Load the cell's artifact, prepare its inputs and warm each kind of window up once."""
-    loaded = load(job)
-    return Served(loaded, latency.timer(loaded))
+    """Load the cell's artifact, then have each core scenario prepare its inputs and warm its windows up."""
+    loaded, scenarios = load(job), tuple(resolve(name)() for name in CORE)
+    timers = {kind: timer for timer in (scenario.timer(loaded) for scenario in scenarios) if timer
+              for kind in timer.kinds}
+    return Served(loaded, scenarios, timers)
 
 
 def load(job: MeasureJob) -> Loaded:

@@ -25,6 +25,9 @@ class Limits:
     steal_share: float = 0.03  # time the hypervisor gave others on the measuring CPUs ÷ their capacity
 
 
+LIMITS = Limits()  # a timed window with interference above these is dropped and taken again in a later round
+
+
 @dataclass(frozen=True)
 class Interference:
     """What other work did during one timed phase, as seconds, counts, rates and shares of wall time."""

@@ -1,10 +1,10 @@
-"""The scenario seam: what is measured once a cell's artifact is loaded. The latency scenario runs in every
-measure job; others are selected per cell by their own top-level matrix section."""
+"""The scenario seam: what is measured once a cell's artifact is loaded. The core scenarios (CORE: latency)
+run in every measure job, first; the registered ones are selected per cell by their own matrix section."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 if TYPE_CHECKING:
     from bench_matrix.backend import Backend, Session
@@ -13,6 +13,7 @@ if TYPE_CHECKING:
     from bench_matrix.matrix.load import Loading
     from bench_matrix.matrix.spec import Matrix
     from bench_matrix.measure.gpu import GpuMemory
+    from bench_matrix.measure.schedule import Window
     from bench_matrix.measurement import Measurement
 
 
@@ -37,9 +38,19 @@ class Outcome:
     samples: dict[str, bytes] = field(default_factory=dict)
 
 
+class Windows(Protocol):
+    """The timed windows a scenario serves to the executor's rounds, by kind (docs/metrics.md §5)."""
+
+    @property
+    def kinds(self) -> tuple[str, ...]: ...
+
+    def window(self, kind: str, seconds: float) -> Window: ...
+
+
 class Scenario:
     """A scenario selectable from the matrix: its section's schema, typed reading and per-cell plan, the
-    figures its requirements bound, and where its report section is (the report's Section protocol)."""
+    figures its requirements bound, and where its report section is (the report's Section protocol); a core
+    one (CORE) has no section, no plan (so no part in a fingerprint), and `timer` and `evaluate` instead."""
 
     name: ClassVar[str]  # the matrix section's key, the Planned's name and its record fields' prefix
     title: ClassVar[str]  # the plan view's column
@@ -59,6 +70,17 @@ class Scenario:
     def figure(self, key: str, metrics: Measurement) -> float | None:
         """The stored figure requirement `key` bounds, or None when the record has none."""
         return None
+
+    def timer(self, loaded: Loaded) -> Windows | None:
+        """A core scenario's windows served to the executor's rounds, warmed up; None when it serves none."""
+        return None
+
+    def evaluate(self, loaded: Loaded, before: Outcome | None = None) -> Outcome:
+        """A core scenario's fields measured outside the rounds: now, or `before` them brought up to date."""
+        return Outcome({})
+
+
+CORE = ("bench_matrix.scenarios.latency:Latency",)  # 'module:class': every measure job's first scenarios
 
 
 def fields(name: str, others: dict[str, Any]) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""The latency scenario, run by every measure job: the loaded session timed at batch 1 (and end to end on a
+"""The latency scenario, the core one (base.CORE): the loaded session timed at batch 1 (and end to end on a
 GPU) and at the throughput batch in the windows of interleaved rounds (the executor owns the clock:
 docs/metrics.md §5), then its outputs evaluated; the timed figures are made from the rounds' windows."""
 
@@ -16,18 +16,17 @@ from bench_matrix import data, hardware
 from bench_matrix.jobs import MeasureJob
 from bench_matrix.jobs.artifact import predict_all
 from bench_matrix.measure.gpu import GpuMemory
-from bench_matrix.measure.interference import Limits, Sampler
+from bench_matrix.measure.interference import LIMITS, Sampler
 from bench_matrix.measure.metrics import evaluate, non_finite_reason
 from bench_matrix.measure.schedule import LATENCY, Window
 from bench_matrix.measure.size import artifact_size
 from bench_matrix.measure.timing import WINDOW_WARMUP, LoopSettings, latency_window, time_calls
 from bench_matrix.phases import phase
-from bench_matrix.scenarios.base import Loaded, Outcome
+from bench_matrix.scenarios.base import Loaded, Outcome, Scenario
 from bench_matrix.scenarios.timed import E2E, THROUGHPUT
 from bench_matrix.tensors import bind, resize, take
 
 LATENCY_INPUTS = 16
-LIMITS = Limits()  # a window with interference above these is dropped and taken again in a later round
 SHARE = {THROUGHPUT: 0.5}  # of settings.window_s: throughput's figures need fewer calls than the p50's
 WARMUP = {THROUGHPUT: 1}  # calls before a window: one batch warms up as the latency window's 2 calls do
 
@@ -57,53 +56,55 @@ class Timer:
         return Window(kind, durations_ns / 1e6, samples, interference.problem(LIMITS), interference.as_dict())
 
 
-def timer(loaded: Loaded) -> Timer:
-    """The cell's inputs prepared for the session (batch 1 from the test split, and the throughput batch),
-    and every kind of window warmed up once (settings.warmup_iterations and warmup_s)."""
-    job, session, settings = loaded.job, loaded.session, loaded.job.settings
-    few, _ = data.load_split(job.data.directory, "test", job.data.preprocess, job.layout,
-                             max(LATENCY_INPUTS, settings.batch_size))
-    few = bind(few, job.source.inputs)
-    hosts = [take(few, slice(i, i + 1)) for i in range(min(LATENCY_INPUTS, len(next(iter(few.values())))))]
-    calls = {LATENCY: (session.execute, [session.prepare(h) for h in hosts], 1)}
-    if loaded.on_gpu:  # end to end: from host arrays, both copies and fetch inside the clock
-        calls[E2E] = (session.predict, hosts, 1)
-    calls[THROUGHPUT] = (session.execute, [session.prepare(resize(few, settings.batch_size))],
-                         settings.batch_size)
-    phase("warm-up")
-    warm = LoopSettings(settings.warmup_iterations, settings.warmup_s, 1, 0.0, settings.warmup_s)
-    for call, inputs, _ in calls.values():
-        time_calls(call, inputs, warm)
-    return Timer(calls)
+class Latency(Scenario):
+    """The core scenario: the session timed in the rounds' windows, and evaluated."""
 
+    name = "latency"
 
-def run(loaded: Loaded) -> Outcome:
-    """What the cell's record holds besides its timed figures: size, accuracy, memory, load and the
-    session's facts."""
-    job, session, settings = loaded.job, loaded.session, loaded.job.settings
-    peak_rss_mb = _peak_rss_mb()
-    phase("evaluate")
-    accuracy, outputs = _evaluate(job, session)
-    converted, manifest = job.converted, job.converted.manifest
-    kept = converted.directory / "size.json"
-    metrics = {**artifact_size(converted.model, kept, job.workspace.partial(kept)),
-               "params": manifest["params"], **accuracy, "outputs_sha256": outputs_digest(outputs),
-               "cpu_affinity": loaded.cpus, **_gpu_metrics(loaded.gpu_memory),
-               "batch_size": settings.batch_size,
-               "peak_rss_mb": peak_rss_mb, "convert_s": manifest["convert_s"],
-               "load_s": loaded.load_s,
-               "threads": settings.threads, "artifact_cached": converted.cached, "session": session.info(),
-               "test_samples": int(len(outputs[0])), **_finetune_metrics(job.finetune, manifest["convert_s"])}
-    if manifest.get("calibration"):  # how many calibration samples were asked for and used
-        metrics["calibration"] = manifest["calibration"]
-    return Outcome(metrics)
+    def timer(self, loaded: Loaded) -> Timer:
+        """The cell's inputs prepared for the session (batch 1 from the test split, and the throughput batch),
+        and every kind of window warmed up once (settings.warmup_iterations and warmup_s)."""
+        job, session, settings = loaded.job, loaded.session, loaded.job.settings
+        few, _ = data.load_split(job.data.directory, "test", job.data.preprocess, job.layout,
+                                 max(LATENCY_INPUTS, settings.batch_size))
+        few = bind(few, job.source.inputs)
+        hosts = [take(few, slice(i, i + 1))
+                 for i in range(min(LATENCY_INPUTS, len(next(iter(few.values())))))]
+        calls = {LATENCY: (session.execute, [session.prepare(h) for h in hosts], 1)}
+        if loaded.on_gpu:  # end to end: from host arrays, both copies and fetch inside the clock
+            calls[E2E] = (session.predict, hosts, 1)
+        calls[THROUGHPUT] = (session.execute, [session.prepare(resize(few, settings.batch_size))],
+                             settings.batch_size)
+        phase("warm-up")
+        warm = LoopSettings(settings.warmup_iterations, settings.warmup_s, 1, 0.0, settings.warmup_s)
+        for call, inputs, _ in calls.values():
+            time_calls(call, inputs, warm)
+        return Timer(calls)
 
-
-def peaked(evaluated: Outcome) -> Outcome:
-    """An evaluation made before the rounds, with the process's peak memory read again (the rounds' batches
-    may have raised it)."""
-    return Outcome({**evaluated.fields, "peak_rss_mb": max(evaluated.fields["peak_rss_mb"], _peak_rss_mb())},
-                   evaluated.samples)
+    def evaluate(self, loaded: Loaded, before: Outcome | None = None) -> Outcome:
+        """What the cell's record holds besides its timed figures: size, accuracy, memory, load, the session's
+        facts; when evaluated `before` the rounds, the peak memory read again (their batches may raise it)."""
+        if before is not None:
+            peak_rss_mb = max(before.fields["peak_rss_mb"], _peak_rss_mb())
+            return Outcome({**before.fields, "peak_rss_mb": peak_rss_mb}, before.samples)
+        job, session, settings = loaded.job, loaded.session, loaded.job.settings
+        peak_rss_mb = _peak_rss_mb()
+        phase("evaluate")
+        accuracy, outputs = _evaluate(job, session)
+        converted, manifest = job.converted, job.converted.manifest
+        kept = converted.directory / "size.json"
+        metrics = {**artifact_size(converted.model, kept, job.workspace.partial(kept)),
+                   "params": manifest["params"], **accuracy, "outputs_sha256": outputs_digest(outputs),
+                   "cpu_affinity": loaded.cpus, **_gpu_metrics(loaded.gpu_memory),
+                   "batch_size": settings.batch_size,
+                   "peak_rss_mb": peak_rss_mb, "convert_s": manifest["convert_s"],
+                   "load_s": loaded.load_s,
+                   "threads": settings.threads, "artifact_cached": converted.cached,
+                   "session": session.info(), "test_samples": int(len(outputs[0])),
+                   **_finetune_metrics(job.finetune, manifest["convert_s"])}
+        if manifest.get("calibration"):  # how many calibration samples were asked for and used
+            metrics["calibration"] = manifest["calibration"]
+        return Outcome(metrics)
 
 
 def _peak_rss_mb() -> float:
@@ -137,8 +138,8 @@ def _reference(job: MeasureJob) -> list[np.ndarray] | None:
 
 
 def _finetune_metrics(facts: dict[str, Any] | None, convert_s: float) -> dict[str, Any]:
-    """For a fine-tuned model: convert_s including the fine-tuning, finetune_s, sparsity, clusters (when it was
-    clustered: elsewhere the most distinct values per kernel is just its size), the facts."""
+    """For a fine-tuned model: convert_s including the fine-tuning, finetune_s, sparsity, clusters (when it
+    was clustered: elsewhere the most distinct values per kernel is just its size), the facts."""
     if not facts:
         return {}
     clusters = facts.get("clusters") if "target_clusters" in facts else None
