@@ -14,7 +14,7 @@ from typing import Any
 from bench_matrix.executors.answers import OpenAnswers
 from bench_matrix.executors.sessions import SessionProcess
 from bench_matrix.jobs import RoundsJob
-from bench_matrix.jobs.results import CellMeasured, Measured, MeasuredGroup
+from bench_matrix.jobs.results import CellEnded, Measured, MeasuredGroup
 from bench_matrix.measure import env as environment
 from bench_matrix.measure.interference import LIMITS
 from bench_matrix.measure.machine_lock import TimingWindow, timing_slot
@@ -141,14 +141,14 @@ def _slot(job: RoundsJob, windows: list[TimingWindow], on_phase: Callable[[str],
 
 
 def _result(key: str, timed: Timed, base: Timed | None, sessions: _Sessions, settings: RoundsSettings,
-            window: dict, spreads: dict[str, Spread | None]) -> CellMeasured:
+            window: dict, spreads: dict[str, Spread | None]) -> CellEnded:
     """The cell's measurement: its timed figures first, then what its session measured; or why it failed."""
     done, user_error = sessions.finished.get(key), sessions.user_error(key)
     if timed.failed or isinstance(done, SessionLost) or done is None:
-        return CellMeasured(key, error=timed.failed or str(done or "not measured"), user_error=user_error)
+        return CellEnded(key, error=timed.failed or str(done or "not measured"), user_error=user_error)
     if not timed.series(LATENCY):
-        return CellMeasured(key, error="no window was timed (its rounds stopped first)")
+        return CellEnded(key, error="no window was timed (its rounds stopped first)")
     timing = figures(timed, base, settings, LIMITS, spreads)
     fields = {**timing.fields, "timing_window": window, **done.metrics.to_json()}
-    return CellMeasured(key, Measured(Measurement.from_json(fields), {**timing.samples, **done.samples},
+    return CellEnded(key, Measured(Measurement.from_json(fields), {**timing.samples, **done.samples},
                                       done.env))

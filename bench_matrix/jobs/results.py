@@ -120,7 +120,7 @@ class Measured(Result):
 
 
 @dataclass(frozen=True)
-class CellMeasured(Result):
+class CellEnded(Result):
     """One cell of a rounds job: its measurement, or why it failed (and whether that is the user's to fix)."""
 
     key: str
@@ -133,4 +133,4 @@ class CellMeasured(Result):
 class MeasuredGroup(Result):
     """The rounds job's result: each cell's, in the job's order."""
 
-    cells: tuple[CellMeasured, ...]
+    cells: tuple[CellEnded, ...]
