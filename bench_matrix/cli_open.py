@@ -21,7 +21,7 @@ if TYPE_CHECKING:
 
 def load(matrix: Path, workspace: Path) -> tuple[Matrix, Workspace]:
     """The matrix file loaded (its warnings on stderr), and the workspace."""
-    from bench_matrix.matrix import load_matrix
+    from bench_matrix.matrix.load import load_matrix
     from bench_matrix.registry import available
 
     loaded = load_matrix(matrix, backends=list(available()))

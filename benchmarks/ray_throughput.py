@@ -71,7 +71,7 @@ def fixed_cost(project: Path, address: str) -> dict[str, float]:
     """Seconds the driver spends once per run: connecting to the cluster, probing every node."""
     from bench_matrix.executors.local import probe
     from bench_matrix.executors.ray_cluster import RayExecutor
-    from bench_matrix.matrix import load_matrix
+    from bench_matrix.matrix.load import load_matrix
     from bench_matrix.plan import resolve
     from bench_matrix.registry import available
     from bench_matrix.workspace import Workspace

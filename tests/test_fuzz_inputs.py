@@ -231,7 +231,7 @@ def prepare_data(project: Path, case: fc.Case) -> Outcome:
     data (the job a child does); a UserError there stops the run with exit 2, anything else is a traceback."""
     from bench_matrix.jobs import DatasetJob
     from bench_matrix.jobs.prepare import prepare_dataset
-    from bench_matrix.matrix import load_matrix
+    from bench_matrix.matrix.load import load_matrix
     from bench_matrix.registry import available
     from bench_matrix.workspace import Workspace
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from bench_matrix.errors import MatrixError
-from bench_matrix.matrix import load_matrix
+from bench_matrix.matrix.load import load_matrix
 from bench_matrix.matrix.expand import training_key, combinations, rule, ruling_key
 from bench_matrix.cell import Ruling
 from bench_matrix.matrix.extended import schema_json

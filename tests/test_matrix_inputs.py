@@ -14,7 +14,7 @@ import pytest
 
 from bench_matrix.cli import main
 from bench_matrix.errors import MatrixError, UserError
-from bench_matrix.matrix import load_matrix
+from bench_matrix.matrix.load import load_matrix
 from bench_matrix.matrix.schema import SCHEMA
 from bench_matrix.store import ResultStore
 from bench_matrix.workspace import file_sha256

@@ -11,7 +11,7 @@ import pytest
 
 from bench_matrix.data import fingerprint
 from bench_matrix.errors import MatrixError
-from bench_matrix.matrix import load_matrix
+from bench_matrix.matrix.load import load_matrix
 from bench_matrix.tensors import TensorSpec
 from conftest import TESTS, cli
 from fuzz_cases import onnx_model

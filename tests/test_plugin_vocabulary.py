@@ -11,7 +11,7 @@ import pytest
 
 from bench_matrix import registry
 from bench_matrix.errors import MatrixError
-from bench_matrix.matrix import load_matrix
+from bench_matrix.matrix.load import load_matrix
 from bench_matrix.registry import vocabulary
 from conftest import TESTS, cli
 from fuzz_cases import onnx_model

@@ -8,7 +8,7 @@ import json
 import pytest
 
 from bench_matrix.errors import MatrixError
-from bench_matrix.matrix import load_matrix
+from bench_matrix.matrix.load import load_matrix
 from bench_matrix.matrix.retired import REPLACED
 from bench_matrix.matrix.schema import RETIRED
 from conftest import FAST_SETTINGS, cli, onnx_matrix_text

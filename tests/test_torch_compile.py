@@ -27,7 +27,7 @@ from test_backends import CALIBRATION, X, _atol  # noqa: E402
 import torch  # noqa: E402
 
 from bench_matrix.errors import MatrixError  # noqa: E402
-from bench_matrix.matrix import load_matrix  # noqa: E402
+from bench_matrix.matrix.load import load_matrix  # noqa: E402
 from bench_matrix.strategy import StrategySpec  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
 from bench_matrix.tensors import TensorSpec  # noqa: E402

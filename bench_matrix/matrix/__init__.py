@@ -1,7 +1,2 @@
-"""The matrix file: its schema, loading with located errors, and expansion into cells."""
-
-from bench_matrix.matrix.load import load_matrix
-from bench_matrix.matrix.spec import DatasetSpec, Matrix, ModelSpec, Settings
-from bench_matrix.strategy import StrategySpec
-
-__all__ = ["DatasetSpec", "Matrix", "ModelSpec", "Settings", "StrategySpec", "load_matrix"]
+"""The matrix file: its schema (schema.py), loading with located errors (load.py: `load_matrix`), the typed
+values it reads into (spec.py) and its expansion into cells (expand.py)."""
