@@ -1,5 +1,5 @@
-"""How often `compare` calls unchanged cells changed: the same seven cells (benchmarks/interference.py's
-PilotNet matrix) measured REPEATS times with `run --force` into one store, then every consecutive pair of runs
+"""How often `compare` calls unchanged cells changed: the same seven cells (the PilotNet matrix below)
+measured REPEATS times with `run --force` into one store, then every consecutive pair of runs
 compared at the default thresholds. Nothing changed between the runs, so every "worse" or "better" is a false
 alarm; the table gives, per metric, how often one occurred and how large the run-to-run changes were (the
 quantiles the default thresholds in docs/results.md are chosen from).
@@ -21,7 +21,19 @@ from pathlib import Path
 import numpy as np
 
 from bench_matrix.report.analysis.compare import DEFAULT_THRESHOLDS, METRICS
-from interference import MATRIX
+
+MATRIX = """\
+models:
+  - {name: pilotnet, framework: pytorch, builtin: pilotnet, training: {epochs: 1}}
+  - {name: pilotnet-tf, framework: tensorflow, builtin: pilotnet, training: {epochs: 1}}
+dataset: {builtin: driving, samples: 400, circuits: 4, seed: 0}
+axes: {backend: [pytorch, torchscript, onnxruntime, tensorflow, tflite], strategy: [none, ptq_dynamic],
+       precision: [fp32, int8], target: [cpu]}
+exclude:
+  - {model: pilotnet-tf, backend: onnxruntime}
+  - {model: pilotnet-tf, strategy: ptq_dynamic}
+settings: {threads: 1, warmup_iterations: 20, warmup_s: 0.5}
+"""
 
 
 def bench_matrix(workdir: Path, *args: str) -> subprocess.CompletedProcess:
