@@ -185,7 +185,7 @@ def test_training_strategies_need_a_trainer_and_backends_are_asked_for_the_qat_k
     matrix = load_matrix(write(tmp_path, text))
     cells, excluded = combinations(matrix, ["x"])
     rulings = {ruling_key(matrix, c): Ruling() for c in cells}
-    assert {key[2] for key in rulings} == {"qat"}  # a QAT model, no conversion step: the backend converts "qat"
+    assert {key[2] for key in rulings} == {"qat"}  # a QAT model, no conversion step: the backend converts it
     unruled = rule(matrix, cells, excluded, rulings)
     assert {p.state for p in unruled.cells} == {"invalid"}
     assert "no installed trainer" in unruled.cells[0].reason

@@ -9,7 +9,8 @@ ROOT = Path(__file__).resolve().parents[1] / "bench_matrix"
 MATRIX_CORE = ["matrix/schema.py", "matrix/extended.py", "matrix/spec.py", "matrix/load.py",  # hold the built-in
                "matrix/requirements.py", "matrix/require.py"]  # dataset's keys
 GENERIC = ["runner.py", "run.py", "remeasure.py", "plan.py", "cell.py", "jobs/__init__.py", "jobs/measure.py",
-           "plan_view.py", "scenarios/base.py", "scenarios/latency.py", "verdict.py", "ranking.py", "registry.py",
+           "plan_view.py", "scenarios/base.py", "scenarios/latency.py", "verdict.py", "ranking.py",
+           "registry.py",
            *(str(p.relative_to(ROOT)) for p in sorted(ROOT.glob("executors/*.py"))),
            *(str(p.relative_to(ROOT)) for p in sorted(ROOT.glob("store*.py"))),
            "report/__init__.py",

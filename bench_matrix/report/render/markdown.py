@@ -12,8 +12,8 @@ from urllib.parse import quote
 
 from bench_matrix.report.analysis.noise import noise
 from bench_matrix.report.analysis.summary import Environment, ModelSummary, Report, headline
-from bench_matrix.report.render.columns import (DASH, DIFFERENT_ENVIRONMENTS, Column, cell_names, model_columns,
-                                                shown)
+from bench_matrix.report.render.columns import (DASH, DIFFERENT_ENVIRONMENTS, Column, cell_names,
+                                                model_columns, shown)
 from bench_matrix.report.render.noise_line import noise_line
 from bench_matrix.report.render.plots import Plot
 from bench_matrix.report.render.sections import sections
