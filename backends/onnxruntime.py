@@ -38,7 +38,7 @@ class OnnxRuntimeBackend(Backend):
     """Exports PyTorch and Keras models to ONNX (or takes ONNX files as given) and runs them with ONNX Runtime."""
 
     name = "onnxruntime"
-    revision = 2  # 2: the quantisation pre-pass falls back where it fails, and says what it applied
+    revision = 3  # 2: the quantisation pre-pass falls back where it fails; 3: it runs in a relative scratch folder
     description = ("ONNX Runtime: CPU, CUDA and TensorRT providers; fp16 conversion, int8 QDQ quantisation (CPU) "
                    "and TensorRT int8 from a calibration table")
     supports = (Support(FRAMEWORKS, ("none",), ("fp32", "fp16"), ("cpu", "cuda", "tensorrt")),
@@ -137,6 +137,7 @@ def _pre_process(model: "onnx.ModelProto", tmp: Path) -> tuple[Path, dict[str, s
     import onnx
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
+    tmp = tmp.absolute()  # a run's scratch directory is relative to the project, and the pass works inside it
     fp32, prepared = tmp / "fp32.onnx", tmp / "prepared.onnx"
     onnx.save(model, str(fp32))
     failed: list[str] = []

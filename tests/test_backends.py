@@ -18,7 +18,7 @@ sys.path.insert(0, str(TESTS))
 
 import tiny_models  # noqa: E402
 from conftest import TINY_X  # noqa: E402
-from convert_helper import convert_with  # noqa: E402
+from convert_helper import convert_with, request_for  # noqa: E402
 
 
 import torch  # noqa: E402
@@ -337,6 +337,21 @@ def test_tensorflow_backends_skip_where_tensorflow_is_missing(monkeypatch: pytes
         for target in sorted({t for support in backend.supports for t in support.targets}):
             reasons = [backend.probe(target, "fp32"), backend.probe_source("tensorflow", "keras")]
             assert "TensorFlow is not installed: `make setup` installs" in str(reasons), backend.name
+
+
+def test_onnxruntime_pre_processes_in_a_relative_scratch_directory(source: SourceModel, tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run's scratch directory is relative to the project (.bench-matrix/tmp/...): the pre-quantisation pass,
+    which works inside it, found none of its files there and every int8 cell went without it."""
+    import dataclasses
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "scratch").mkdir()
+    for kind in ("ptq_dynamic", "ptq_static"):
+        request = request_for(X, source, tmp_path / kind, kind, "int8")
+        (tmp_path / kind).mkdir()
+        meta = BACKENDS["onnxruntime"].convert(dataclasses.replace(request, scratch_dir=Path("scratch")))
+        assert meta["quantization"]["pre_process"] == {"applied": "full"}, meta["quantization"]
 
 
 def test_onnxruntime_quantises_where_its_pre_processing_fails(source: SourceModel, reference: np.ndarray,
