@@ -27,7 +27,7 @@ report: setup
 	$(BIN)/bench-matrix report
 
 test: setup
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=40
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder --durations=40
 
 bench: setup
 	$(BIN)/python benchmarks/harness_overhead.py

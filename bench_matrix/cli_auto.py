@@ -96,9 +96,10 @@ def _found(request: Request, ws: Workspace) -> Found:
     from bench_matrix.registry import BackendLoadError, available, backend_class
 
     supports, slow = {}, {}
-    for name in available():
+    entries = available()
+    for name in entries:
         try:
-            found_class = backend_class(name)
+            found_class = backend_class(name, entries)
         except BackendLoadError:
             continue  # `bench-matrix backends` says why
         supports[name] = found_class.supports

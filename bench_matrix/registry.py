@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from functools import cache
+from collections.abc import Mapping
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
@@ -160,7 +161,7 @@ def vocabulary() -> Vocabulary:
     entries = available()
     for name in sorted(entries, key=lambda n: not entries[n].builtin):  # the built-in ones first, by name
         try:
-            cls = backend_class(name)
+            cls = backend_class(name, entries)
             declared = {"targets": dict.fromkeys(t for s in cls.supports for t in s.targets),
                         "precisions": dict.fromkeys(p for s in cls.supports for p in s.precisions)}
             problem = _options_problem(cls.options)
@@ -192,9 +193,9 @@ def _options_problem(options: Any) -> str | None:
     return None
 
 
-def backend_class(name: str) -> type[Backend]:
-    """Import one registered backend's class."""
-    entries = available()
+def backend_class(name: str, entries: Mapping[str, BackendEntry] | None = None) -> type[Backend]:
+    """Import one registered backend's class (`entries`: `available()`'s answer, when the caller has it)."""
+    entries = available() if entries is None else entries
     if name not in entries:
         raise BackendLoadError(f"no backend named {name!r} is installed (installed: {', '.join(entries)})")
     if entries[name].clash:

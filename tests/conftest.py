@@ -30,14 +30,24 @@ GPU_NOT_RUN = pytest.StashKey[str]()  # which gpu- and arm64-marked tests were d
 ARM64_OPT_IN = "opt-in: `pytest -m arm64` with the emulated arm64 board started (docs/devices.md §7)"
 
 
+# the files taking 15 s or more in all, longest first (a timed run's --durations): pytest-xdist hands out
+# whole files in collection order (the test command turns its own order off), and the longest should start
+# first, or one worker ends minutes before the other; the files not named here follow them
+LONGEST_FIRST = ("test_conformance", "test_cli_training", "test_cli_tensorflow", "test_closed_loop",
+                 "test_torch_compile", "test_cli", "test_concurrent_runs", "test_ssh", "test_auto_matrix",
+                 "test_tfmot_trainer", "test_remeasure", "test_ray", "test_history", "test_cli_tasks",
+                 "test_fuzz_inputs", "test_forward_inputs", "test_open_axes", "test_rounds",
+                 "test_verdict_cli", "test_openvino", "test_cache_keys", "test_transformer_int8")
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Files holding slow tests first (pytest-xdist hands out whole files: the longest should start first).
-    Without an NVIDIA GPU (the first reason every GPU probe gives), the gpu-marked tests are deselected and
-    reported in one line instead of skipped one by one; so are the arm64-marked ones unless -m names them."""
+    """The longest files first (LONGEST_FIRST). Without an NVIDIA GPU (the first reason every GPU probe
+    gives), the gpu-marked tests are deselected and reported in one line instead of skipped one by one; so
+    are the arm64-marked ones unless -m names them."""
     from bench_matrix.hardware import no_gpu_reason
 
-    slow = {item.path for item in items if item.get_closest_marker("slow")}
-    items.sort(key=lambda item: item.path not in slow)  # stable: a file's tests stay together, in order
+    rank = {name: place for place, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.stem, len(rank)))  # stable: a file's tests stay in order
 
     reasons = {"gpu": no_gpu_reason(),
                "arm64": None if "arm64" in (config.option.markexpr or "") else ARM64_OPT_IN}

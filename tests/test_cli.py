@@ -40,18 +40,19 @@ def records(project: Path) -> dict[str, dict]:
 
 
 def test_run_small_matrix_and_report(tiny_project):
+    unasked = "exclude: [{backend: torchscript, strategy: ptq_dynamic}]\n"
     (tiny_project / "m.yaml").write_text(matrix_text(["pytorch", "torchscript", "onnxruntime"],
                                                      ["none", "ptq_dynamic", "ptq_static"], ["fp32", "int8"],
-                                                     ["cpu", "cuda"]))
+                                                     ["cpu", "cuda"], unasked))
     plan = cli(tiny_project, "plan", "m.yaml")
     assert plan.returncode == 0, plan.stderr
-    assert "7 will run" in plan.stdout and "3 will be skipped" in plan.stdout
+    assert "6 will run" in plan.stdout and "3 will be skipped" in plan.stdout
 
     run = cli(tiny_project, "run", "m.yaml")
     assert run.returncode == 0, run.stdout + run.stderr
-    assert "7 ok, 3 skipped, 0 failed" in run.stdout
+    assert "6 ok, 3 skipped, 0 failed" in run.stdout
     found = records(tiny_project)
-    assert set(found) == {"pytorch/none/fp32/cpu", "torchscript/none/fp32/cpu", "torchscript/ptq_dynamic/int8/cpu",
+    assert set(found) == {"pytorch/none/fp32/cpu", "torchscript/none/fp32/cpu",
                           "torchscript/ptq_static/int8/cpu", "onnxruntime/none/fp32/cpu",
                           "onnxruntime/ptq_dynamic/int8/cpu", "onnxruntime/ptq_static/int8/cpu",
                           "pytorch/none/fp32/cuda", "torchscript/none/fp32/cuda", "onnxruntime/none/fp32/cuda"}
@@ -229,7 +230,9 @@ def test_a_models_cells_are_timed_in_rounds_with_a_paired_speedup(onnx_project):
     assert kept | {"speedup", "rounds", "throughput_ci"} <= set(half)  # ... and the new ones
     assert not {"latency_attempts", "latency_stability", "latency_passes_p50"} & set(half)  # retired
     ratio = half["speedup"]
-    assert ratio["rounds"] >= 3 and ratio["ci"][0] <= ratio["value"] <= ratio["ci"][1]
+    # paired over the rounds both had clean: a round a loaded machine disturbed leaves the pair, not the run
+    assert 2 <= ratio["rounds"] <= half["timing_window"]["rounds"]
+    assert ratio["ci"][0] <= ratio["value"] <= ratio["ci"][1]
     assert half["rounds"]["stop"] in ("width", "budget") and half["timing_window"]["rounds"] >= 3
     assert half["rounds"]["processes"] == 2 and half["rounds"]["model_spread"] is not None
     assert half["rounds"]["visits"] == base["rounds"]["visits"] == 1.0  # one cell paired: the baseline √1 times

