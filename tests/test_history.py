@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from bench_matrix.measure.interference import COUNTING_ERROR_S
-from conftest import FAST_SETTINGS, cli, install_slow_plugin, matrix_text
+from conftest import FAST_SETTINGS, cli, install_slow_plugin, matrix_text, onnx_matrix_text
 
 FORMAT_1 = Path(__file__).parent / "data" / "store-format-1.sqlite"
 pytestmark = pytest.mark.slow
@@ -131,8 +131,9 @@ def test_two_runs_of_unchanged_cells_compare_unchanged(tiny_project):
             assert name not in TIMED or _interference(change) or change["p_value"] == 1.0, cell
 
 
-def test_stores_of_two_hosts_merge_and_report_filters_by_host(tiny_project, tmp_path):
-    (tiny_project / "m.yaml").write_text(matrix_text(["onnxruntime"], ["none"], ["fp32"], ["cpu", "cuda"]))
+def test_stores_of_two_hosts_merge_and_report_filters_by_host(onnx_project, tmp_path):
+    tiny_project = onnx_project  # tiny.onnx: no process of the runs imports torch
+    (tiny_project / "m.yaml").write_text(onnx_matrix_text(["tiny"], ["fp32"]).replace("[cpu]", "[cpu, cuda]"))
     for host in ("alpha", "beta"):
         _ok(cli(tiny_project, "run", "m.yaml", "--results", f"{host}.sqlite", env={"BENCH_MATRIX_HOST": host}))
     merged = tmp_path / "merged.sqlite"

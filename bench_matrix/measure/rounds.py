@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from statistics import fmean
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
@@ -220,7 +221,7 @@ def _round_means(levels: Mapping[Slot, float]) -> dict[int, float]:
         return means
     for _ in range(FIT_STEPS):
         offsets = _offsets(levels, means)
-        middle = float(np.mean(list(offsets.values())))
+        middle = fmean(offsets.values())
         means = _plain_means({(r, j): y - offsets[j] + middle for (r, j), y in levels.items()})
     return means
 
@@ -233,7 +234,7 @@ def _by_round(levels: Mapping[Slot, float]) -> dict[int, list[float]]:
 
 
 def _plain_means(levels: Mapping[Slot, float]) -> dict[int, float]:
-    return {r: float(np.mean(ys)) for r, ys in _by_round(levels).items()}
+    return {r: fmean(ys) for r, ys in _by_round(levels).items()}
 
 
 def _offsets(levels: Mapping[Slot, float], means: Mapping[int, float]) -> dict[int, float]:
@@ -241,7 +242,7 @@ def _offsets(levels: Mapping[Slot, float], means: Mapping[int, float]) -> dict[i
     by_process: dict[int, list[float]] = {}
     for (r, j), y in levels.items():
         by_process.setdefault(j, []).append(y - means[r])
-    return {j: float(np.mean(d)) for j, d in by_process.items()}
+    return {j: fmean(d) for j, d in by_process.items()}
 
 
 def _interval(value: float, parts: list[tuple[float, float]], spread: float, rounds: int) -> Interval:
