@@ -269,12 +269,15 @@ def preload_libraries(ort: Any) -> None:
                     print(f"Failed to load {library}: {error}")
 
 
-def open_session(model: Path, target: str, precision: str, threads: int,
-                 spec: EngineSpec | None = None) -> "onnxruntime.InferenceSession":
-    """A session on `target`'s provider, or RuntimeError when ONNX Runtime fell back to another one."""
+def open_session(model: Path, target: str, precision: str, threads: int, spec: EngineSpec | None = None,
+                 profile_prefix: str | None = None) -> "onnxruntime.InferenceSession":
+    """A session on `target`'s provider, or RuntimeError when ONNX Runtime fell back to another one; with
+    `profile_prefix`, profiling from its creation, into that file's folder."""
     import onnxruntime as ort
 
     options = ort.SessionOptions()
+    if profile_prefix:
+        options.enable_profiling, options.profile_file_prefix = True, profile_prefix
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL

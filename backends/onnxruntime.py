@@ -6,16 +6,19 @@ from __future__ import annotations
 import contextlib
 import importlib.util
 import tempfile
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bench_matrix.plugin import QAT_KINDS, Backend, ConvertRequest, Inputs, Session, StrategySpec, Support, \
-    count, installed_versions, resize
+from bench_matrix.plugin import QAT_KINDS, Backend, ConvertRequest, Inputs, Profile, Session, StrategySpec, \
+    Support, count, installed_versions, resize
 
 from ._common import CALIBRATION_BATCH, batches, calibration_data, static_options_reason
 from ._onnx_export import fp32_model, graph_feeds, opset
+from ._ort_profile import ort_profile
 from ._ort_gpu import CACHE_DIR, CALIBRATION_TABLE, DISTRIBUTIONS, DeviceSession, EngineSpec, build_engines, \
     feed_dtypes, open_session, probe_reasons, profile_reason, write_calibration_table
 
@@ -99,9 +102,10 @@ class OnnxRuntimeBackend(Backend):
     def load(self, artifact_dir: Path, meta: dict[str, Any], target: str, precision: str,
              threads: int) -> Session:
         spec = EngineSpec.at_load(artifact_dir, meta) if target == "tensorrt" else None
-        session = open_session(artifact_dir / meta["file"], target, precision, threads, spec)
-        found = OrtSession(session, meta["inputs"]) if target == "cpu" else \
-            DeviceSession(session, meta["inputs"], "cuda")
+        model = artifact_dir / meta["file"]
+        session = open_session(model, target, precision, threads, spec)
+        found = OrtSession(session, meta["inputs"], partial(_profiled_session, model, precision, threads)) \
+            if target == "cpu" else DeviceSession(session, meta["inputs"], "cuda")
         found.quantization = meta.get("quantization")  # how it was quantised, for the record (session)
         return found
 
@@ -109,8 +113,10 @@ class OnnxRuntimeBackend(Backend):
 class OrtSession(Session):
     """An InferenceSession fed every named input; execute is one sess.run and nothing else."""
 
-    def __init__(self, session: "onnxruntime.InferenceSession", feeds: dict[str, str]):
+    def __init__(self, session: "onnxruntime.InferenceSession", feeds: dict[str, str],
+                 open_profiled: Callable[[str], "onnxruntime.InferenceSession"]):
         self._session = session
+        self._open_profiled = open_profiled  # profile file prefix -> a profiling session like this one
         self._run = session.run
         self._feeds = feeds  # source input name -> graph input name
         self._dtypes = feed_dtypes(session)
@@ -124,10 +130,19 @@ class OrtSession(Session):
     def execute(self, prepared: dict[str, np.ndarray]) -> list[np.ndarray]:
         return self._run(None, prepared)
 
+    def profile(self, prepared: dict[str, np.ndarray], calls: int) -> Profile:
+        """Per node, from a second session with ONNX Runtime's profiling on (its options otherwise the same)."""
+        return ort_profile(self._open_profiled, prepared, calls)
+
     def info(self) -> dict[str, Any]:
         return {"providers": self._session.get_providers(),
                 "threads": self._session.get_session_options().intra_op_num_threads,
                 **({"quantization": self.quantization} if self.quantization else {})}
+
+
+def _profiled_session(model: Path, precision: str, threads: int, prefix: str) -> "onnxruntime.InferenceSession":
+    """A CPU session on `model` as `load` opens it, profiling into files starting `prefix`."""
+    return open_session(model, "cpu", precision, threads, profile_prefix=prefix)
 
 
 def _pre_process(model: "onnx.ModelProto", tmp: Path) -> tuple[Path, dict[str, str]]:

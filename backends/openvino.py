@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
-from bench_matrix.plugin import Backend, ConvertRequest, Inputs, Session, StrategySpec, Support, \
+from bench_matrix.plugin import Backend, ConvertRequest, Inputs, Profile, Session, StrategySpec, Support, \
     installed_versions
 
 from ._common import static_options_reason
@@ -19,6 +19,7 @@ from ._nncf import METHODS, quantise
 from ._onnx_export import OPSET, fp32_model, graph_feeds
 from ._openvino import DEVICES, OPTION_DEFAULTS, compile_config, device_name, device_reason, in_force, \
     INSTALL, missing_reason, openvino
+from ._ov_profile import PERF_COUNT, ov_profile
 
 if TYPE_CHECKING:
     import openvino as ov
@@ -148,6 +149,10 @@ class Compiler:
             self.compiled[key] = compiled
         return self.compiled[key]
 
+    def profiling(self, shapes: dict[str, tuple[int, ...]]) -> "ov.CompiledModel":
+        """The model compiled again for `shapes` as for_shapes does, with per-layer counters (PERF_COUNT)."""
+        return self.core.compile_model(self._reshaped(shapes), self.device, {**self.config, **PERF_COUNT})
+
     def _check(self, shapes: dict[str, tuple[int, ...]]) -> None:
         """Refuse `shapes` (graph input name -> shape) that change a fixed axis of the model."""
         for name, shape in shapes.items():
@@ -202,6 +207,14 @@ class OpenVinoSession(Session):
     def fetch(self, outputs: Prepared) -> list[np.ndarray]:
         return [np.array(outputs.request.get_output_tensor(i).data, dtype=np.float32)
                 for i in range(self._outputs)]
+
+    def profile(self, prepared: Prepared, calls: int) -> Profile:
+        """Per layer, from a second compilation of the batch's model with PERF_COUNT (its config otherwise the
+        same)."""
+        compiled = self._compiler.profiling({graph: tuple(a.shape) for graph, a in prepared.arrays.items()})
+        tensors = {graph: openvino().Tensor(array, shared_memory=True)
+                   for graph, array in prepared.arrays.items()}
+        return ov_profile(compiled, tensors, calls)
 
     def info(self) -> dict[str, Any]:
         return {**self._compiler.facts, "compiled_shapes": len(self._compiler.compiled)}

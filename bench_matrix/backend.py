@@ -11,6 +11,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from bench_matrix.op_profile import Profile
 from bench_matrix.strategy import StrategySpec
 from bench_matrix.sources import SourceModel
 from bench_matrix.tensors import Inputs
@@ -90,6 +91,11 @@ class Session(ABC):
     def info(self) -> dict[str, Any]:
         """Facts about the session worth recording (providers actually used, device, threads)."""
         return {}
+
+    def profile(self, prepared: Any, calls: int) -> Profile:
+        """Optional: `prepared` run `calls` times under the runtime's own profiler, after the timed rounds (the
+        profile scenario); the default has none, and says so."""
+        return Profile(reason="no profiler hook (its Session does not implement profile)")
 
 
 class Backend(ABC):

@@ -3,6 +3,7 @@
 from bench_matrix.backend import DEVICES, Backend, ConvertRequest, Session, Support
 from bench_matrix.hardware import cuda_mismatch_reason, no_gpu_reason, precision_reason
 from bench_matrix.measure.env import installed_versions
+from bench_matrix.op_profile import KINDS, PRECISIONS, OperatorTime, Profile, kind_of
 from bench_matrix.phases import Epochs
 from bench_matrix.sources import ModelFileError, SourceModel
 from bench_matrix.sources.forward_call import for_inputs
@@ -19,6 +20,8 @@ from bench_matrix.tensors import Inputs, TensorSpec, concrete, count, example_in
 __all__ = [
     # backends
     "Backend", "ConvertRequest", "DEVICES", "QAT_KINDS", "Session", "StrategySpec", "Support",
+    # profiles (Session.profile)
+    "KINDS", "OperatorTime", "PRECISIONS", "Profile", "kind_of",
     # trainers
     "Epochs", "FineTuneRequest", "FineTuned", "Trainer", "epoch_phases", "training_arrays", "weight_stats",
     # source models

@@ -155,6 +155,13 @@ SELECTOR = {
     "type": "object", "minProperties": 1, "additionalProperties": False,
     "properties": {key: {"type": "string"} for key in CELL_KEYS},
 }
+# a scenario section's selection of cells: every cell, or partial cells as in include, less those excluded
+SELECTION = {
+    "cells": {"if": {"type": "string"}, "then": {"const": "all"},
+              "else": {"type": "array", "minItems": 1, "items": SELECTOR},
+              "description": "'all' (default) or a list of partial cells, as in include"},
+    "exclude": {"type": "array", "items": SELECTOR},
+}
 
 _FOLDERS = {"oneOf": [{"type": "string"}, {"type": "array", "minItems": 1, "items": {"type": "string"}}],
             "x-message": "give a folder or a list of folders"}

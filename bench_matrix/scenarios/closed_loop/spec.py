@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from bench_matrix.matrix.schema import NAME, SELECTOR, axis, seconds
+from bench_matrix.matrix.schema import NAME, SELECTION, axis, seconds
 from bench_matrix.matrix.spec import Selector
 from bench_matrix.workload.driving.circuits import BUILTIN_CIRCUITS
 from bench_matrix.workload.driving.points import MAX_COORDINATE
@@ -79,9 +79,6 @@ SCHEMA: dict[str, Any] = {
         "time_limit_s": seconds(3_600, exclusive=True, description="simulated seconds per circuit"),
         "off_road_limit_s": seconds(600, exclusive=True,
                                      description="a lap stops after this long off the road in one go"),
-        "cells": {"if": {"type": "string"}, "then": {"const": "all"},
-                  "else": {"type": "array", "minItems": 1, "items": SELECTOR},
-                  "description": "'all' (default) or a list of partial cells, as in include"},
-        "exclude": {"type": "array", "items": SELECTOR},
+        **SELECTION,
     },
 }

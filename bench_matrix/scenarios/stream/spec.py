@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from bench_matrix.matrix.schema import SELECTOR, seconds
+from bench_matrix.matrix.schema import SELECTION, seconds
 from bench_matrix.matrix.spec import Selector
 
 POLICIES = ("skip", "queue")
@@ -60,9 +60,6 @@ SCHEMA: dict[str, Any] = {
         "policy": {"enum": list(POLICIES),
                    "description": "a frame arriving while a call runs: skip (dropped, default) or queue "
                                   "(served after it)"},
-        "cells": {"if": {"type": "string"}, "then": {"const": "all"},
-                  "else": {"type": "array", "minItems": 1, "items": SELECTOR},
-                  "description": "'all' (default) or a list of partial cells, as in include"},
-        "exclude": {"type": "array", "items": SELECTOR},
+        **SELECTION,
     },
 }

@@ -1,0 +1,128 @@
+"""Per-operator profiles (the profile scenario, Session.profile): ONNX Runtime's dynamic int8 keeps its
+convolution at fp32 and runs its Gemm at int8, OpenVINO's fp32 layers are profiled, a backend without a hook
+records why, and through the CLI the record, the report's section and a bad section's location."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench_matrix.op_profile import KINDS, PRECISIONS, OperatorTime, Profile, kind_of
+from conftest import cli, install_slow_plugin, onnx_matrix_text
+
+X = np.random.default_rng(0).random((1, 3, 16, 16), np.float32)
+
+
+def conv_gemm(folder: Path) -> Path:
+    """An ONNX model (N,3,16,16) -> Conv 3x3 -> Relu -> Reshape -> Gemm -> (N,4)."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    rng = np.random.default_rng(0)
+    weights = [numpy_helper.from_array(rng.standard_normal(shape).astype(np.float32), name)
+               for name, shape in (("CW", (8, 3, 3, 3)), ("CB", (8,)), ("GW", (2048, 4)), ("GB", (4,)))]
+    weights.append(numpy_helper.from_array(np.array([-1, 2048], np.int64), "S"))
+    nodes = [helper.make_node("Conv", ["X", "CW", "CB"], ["C"], pads=[1, 1, 1, 1]),
+             helper.make_node("Relu", ["C"], ["R"]), helper.make_node("Reshape", ["R", "S"], ["F"]),
+             helper.make_node("Gemm", ["F", "GW", "GB"], ["Y"])]
+    graph = helper.make_graph(nodes, "conv_gemm",
+                              [helper.make_tensor_value_info("X", TensorProto.FLOAT, ["N", 3, 16, 16])],
+                              [helper.make_tensor_value_info("Y", TensorProto.FLOAT, ["N", 4])], weights)
+    path = folder / "fp32.onnx"
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8), str(path))
+    return path
+
+
+def by_kind(profile: Profile) -> dict[str, set[str]]:
+    """Each kind's precisions in the profile."""
+    found: dict[str, set[str]] = {}
+    for op in profile.operators:
+        found.setdefault(op.kind, set()).add(op.precision)
+    return found
+
+
+def test_onnxruntime_dynamic_int8_runs_its_conv_at_fp32_and_its_gemm_at_int8(tmp_path: Path) -> None:
+    from onnxruntime.quantization import QuantType, quantize_dynamic
+
+    from bench_matrix_backends.onnxruntime import OnnxRuntimeBackend
+
+    quantize_dynamic(conv_gemm(tmp_path), tmp_path / "model.onnx", op_types_to_quantize=["MatMul", "Gemm"],
+                     reduce_range=True, weight_type=QuantType.QInt8)
+    meta = {"file": "model.onnx", "inputs": {"input": "X"}}
+    session = OnnxRuntimeBackend().load(tmp_path, meta, "cpu", "int8", 1)
+    profile = session.profile(session.prepare({"input": X}), 5)
+    assert profile.problem() is None and profile.calls == 5
+    kinds = by_kind(profile)
+    assert kinds["conv"] == {"fp32"} and kinds["matmul"] == {"int8"}
+    assert math.isclose(sum(op.ms for op in profile.operators), profile.total_ms)
+    fields = profile.fields()
+    total = sum(op["ms"] for op in fields["profile_operators"])
+    assert math.isclose(total, fields["profile_ms"], rel_tol=1e-4)
+    assert not list(tmp_path.glob("*.json"))  # the trace went with its temporary folder
+
+
+def test_openvino_fp32_profile_has_its_convolution(tmp_path: Path) -> None:
+    from bench_matrix_backends.openvino import OpenVinoBackend
+
+    path = conv_gemm(tmp_path)
+    session = OpenVinoBackend().load(tmp_path, {"file": path.name, "inputs": {"input": "X"}, "options": {}},
+                                     "cpu", "fp32", 1)
+    profile = session.profile(session.prepare({"input": X}), 3)
+    assert profile.problem() is None
+    kinds = by_kind(profile)
+    assert kinds["conv"] == {"fp32"} and kinds["matmul"] == {"fp32"}
+    assert {op.kind for op in profile.operators} <= set(KINDS)
+    assert {op.precision for op in profile.operators} <= set(PRECISIONS)
+
+
+def test_kinds_and_what_is_no_result() -> None:
+    assert [kind_of(t) for t in ("QLinearConv", "Convert", "DynamicQuantizeMatMul", "FullyConnected",
+                                 "MaxPool", "Relu", "Reorder", "DequantizeLinear", "Add")] == \
+        ["conv", "quant", "matmul", "matmul", "pool", "activation", "reshape", "quant", "other"]
+    zero = OperatorTime("c", "Conv", "conv", "fp32", 0.0)
+    assert Profile((zero,), 5).problem() == "the profiler reported zero time for every operator"
+    infinite = OperatorTime("c", "Conv", "conv", "fp32", math.inf)
+    assert "finite" in Profile((zero, infinite), 5).problem()
+    assert Profile(reason="none here").fields() == {"profile_reason": "none here"}
+
+
+@pytest.fixture(scope="module")
+def profiled(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, str]]:
+    """tiny.onnx through ONNX Runtime and through the slow_ort plugin (no profiler hook), profiled."""
+    import fuzz_cases
+
+    project = fuzz_cases.write_project(tmp_path_factory.mktemp("profile"))
+    env = {**install_slow_plugin(project), "SLOW_ORT_DELAY_MS": "0"}
+    text = onnx_matrix_text(["tiny"], ["fp32"], "profile: {calls: 5}\n")
+    (project / "m.yaml").write_text(text.replace("[onnxruntime]", "[onnxruntime, slow_ort]"))
+    out = cli(project, "run", "m.yaml", env=env)
+    assert out.returncode == 0, out.stdout + out.stderr
+    return project, env
+
+
+def test_a_run_stores_the_profile_and_the_report_shows_it(profiled: tuple[Path, dict[str, str]]) -> None:
+    project, env = profiled
+    out = cli(project, "report", "--format", "json", env=env)
+    records = {r["cell"]["backend"]: r["metrics"] for r in json.loads(out.stdout)["records"]}
+    ort = records["onnxruntime"]
+    assert ort["profile_calls"] == 5 and {op["op_type"] for op in ort["profile_operators"]} >= {"MatMul"}
+    assert math.isclose(sum(op["ms"] for op in ort["profile_operators"]), ort["profile_ms"], rel_tol=1e-4)
+    assert records["slow_ort"]["profile_reason"].startswith("slow_ort: no profiler hook")
+    assert "profile_operators" not in records["slow_ort"]
+    out = cli(project, "report", "--format", "md", "--out", str(project / "pages"), env=env)
+    page = (project / "pages" / "tiny.md").read_text()
+    assert "## Where the time goes" in page and "| onnxruntime none fp32 |" in page
+    assert "Not profiled: slow_ort none fp32: slow_ort: no profiler hook" in page
+    out = cli(project, "report", "--format", "md", "--backend", "slow_ort", "--out", str(project / "slow"),
+              env=env)
+    assert out.returncode == 0 and "Where the time goes" not in (project / "slow" / "tiny.md").read_text()
+
+
+def test_a_bad_profile_value_exits_2_naming_file_line_and_key(onnx_project: Path) -> None:
+    (onnx_project / "m.yaml").write_text(onnx_matrix_text(["tiny"], ["fp32"], "profile: {calls: 0}\n"))
+    out = cli(onnx_project, "plan", "m.yaml")
+    assert out.returncode == 2 and "m.yaml:6: profile.calls" in out.stderr, out.stderr
