@@ -1,6 +1,6 @@
 """Mutants of the built-in onnxruntime backend for the conformance kit's own tests: each copy breaks one rule
 the way a plugin author could without noticing (a thread count echoed, outputs reversed, int8 claimed for an
-fp32 program, stale outputs, fetch views of a reused buffer, the artifact kept in shared_dir, ragged batches
+fp32 program, a profile counting its operators many times over, stale outputs, fetch views of a reused buffer, the artifact kept in shared_dir, ragged batches
 dropped), and must fail the kit with that rule."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from bench_matrix.plugin import ConvertRequest, Session, StrategySpec, Support
+from bench_matrix.plugin import ConvertRequest, Profile, Session, StrategySpec, Support
 from bench_matrix_backends.onnxruntime import OnnxRuntimeBackend, OrtSession
 
 FP32 = Support(("onnx",), ("none",), ("fp32",), ("cpu",))
@@ -75,6 +75,23 @@ class OrtFakeInt8(Mutant):
     def convert(self, request: ConvertRequest) -> dict[str, Any]:
         fp32 = dataclasses.replace(request, step=StrategySpec("none", "none"), precision="fp32")
         return super().convert(fp32)
+
+
+class OrtCountsTwice(Mutant):
+    """profile() adds each operator's time once per call per operator it saw: many times the real time."""
+
+    name = "ort_counts_twice"
+
+    def session(self, loaded: Any) -> Session:
+        class CountsTwice(OrtSession):
+            def profile(self, prepared: dict[str, np.ndarray], calls: int) -> Profile:
+                found = super().profile(prepared, calls)
+                scale = 1000 * len(found.operators)
+                return dataclasses.replace(found, operators=tuple(
+                    dataclasses.replace(op, ms=op.ms * scale) for op in found.operators))
+
+        loaded.__class__ = CountsTwice
+        return loaded
 
 
 class OrtStale(Mutant):
@@ -151,8 +168,9 @@ class OrtTiles(Mutant):
 
 # Each mutant's entry point, and the rules the kit must name for it (and no others).
 MUTANTS = {cls.name: f"{__name__}:{cls.__name__}" for cls in (
-    OrtEchoesThreads, OrtReversed, OrtFakeInt8, OrtStale, OrtViews, OrtPointer, OrtTiles)}
+    OrtEchoesThreads, OrtReversed, OrtFakeInt8, OrtCountsTwice, OrtStale, OrtViews, OrtPointer, OrtTiles)}
 RULES = {"ort_echoes_threads": {"threads-as-asked"}, "ort_reversed": {"outputs-in-order"},
-         "ort_fake_int8": {"int8-is-quantised"}, "ort_stale": {"outputs-of-this-call"},
+         "ort_fake_int8": {"int8-is-quantised", "profile-precisions-plausible"},
+         "ort_counts_twice": {"profile-within-its-calls"}, "ort_stale": {"outputs-of-this-call"},
          "ort_views": {"fetch-returns-owned-arrays"}, "ort_pointer": {"artifact-lives-in-out_dir"},
          "ort_tiles": {"runs-any-batch"}}

@@ -10,12 +10,14 @@ import numpy as np
 from bench_matrix.backend import Session
 from bench_matrix.conformance.cases import RuleBroken, Tolerance
 from bench_matrix.measure.metrics import non_finite_reason
+from bench_matrix.op_profile import KINDS, PRECISIONS, Profile
 from bench_matrix.tensors import Inputs
 
 THREAD_KEYS = ("threads", "intra_op_threads")  # how info() names the intra-op threads in force
 # execute() counts as returning before its work is done when, of one call's work, more than this share is
 # still pending when it returns (fetch right after it waits that long) and that is at least PENDING_FLOOR_S.
 PENDING_SHARE, PENDING_FLOOR_S, PENDING_REPEATS = 0.5, 0.002, 3
+PROFILED_CALLS = 2  # calls a profile runs in the kit
 
 
 def check_fetched(outputs: Any, reference: list[np.ndarray], previous: int | None = None) -> list[np.ndarray]:
@@ -143,3 +145,29 @@ def pending_work(session: Session, inputs: Inputs) -> str | None:
                 f"{pending * 1e3:.2f} ms more than once the work was over: execute must wait for its work "
                 f"(synchronise the device)")
     return None
+
+
+def check_profile(session: Session, inputs: Inputs, precision: str) -> None:
+    """RuleBroken unless a session implementing Session.profile gives a reason or a profile of the asked calls
+    whose operators come from the vocabulary, whose times fit in the wall-clock time of the profiling, and
+    whose precisions suit the cell (an int8 cell runs some operator at int8, an fp32 one none)."""
+    begin = time.perf_counter()
+    profile = session.profile(session.prepare(inputs), PROFILED_CALLS)
+    wall_ms = (time.perf_counter() - begin) * 1e3
+    if not isinstance(profile, Profile):
+        raise RuleBroken("profile-is-a-profile", f"profile() returned {type(profile).__name__}, not a Profile")
+    if profile.reason:
+        return
+    if (problem := profile.problem()) or profile.calls != PROFILED_CALLS:
+        raise RuleBroken("profile-is-a-result", problem or f"asked for {PROFILED_CALLS} calls, the profile "
+                                                           f"says {profile.calls}")
+    kinds, precisions = {op.kind for op in profile.operators}, {op.precision for op in profile.operators}
+    if not kinds <= set(KINDS) or not precisions <= set(PRECISIONS):
+        raise RuleBroken("profile-vocabulary", f"kinds {sorted(kinds)} and precisions {sorted(precisions)}; "
+                                               f"allowed: {', '.join(KINDS)}; {', '.join(PRECISIONS)}")
+    if profile.total_ms > wall_ms:
+        raise RuleBroken("profile-within-its-calls", f"the operators add up to {profile.total_ms:.3g} ms over "
+                                                     f"the calls, more than the {wall_ms:.3g} ms profile() took")
+    if (precision == "int8") != ("int8" in precisions) and precision in ("int8", "fp32"):
+        raise RuleBroken("profile-precisions-plausible", f"a {precision} cell's operators ran at "
+                                                         f"{', '.join(sorted(precisions))}")

@@ -10,8 +10,8 @@ import pytest
 from bench_matrix.backend import DEVICES, Session, Support
 from bench_matrix.conformance.cases import REPEAT, SOURCE_FORMATS, TOLERANCES, Case, RuleBroken, Tolerance, \
     combinations, option_variants, reason_problem
-from bench_matrix.conformance.checks import bounds, check_close, check_kept, check_quantised, \
-    pending_work, reported_threads
+from bench_matrix.conformance.checks import bounds, check_close, check_kept, check_profile, \
+    check_quantised, pending_work, reported_threads
 from bench_matrix.conformance.here import NotRun, describe
 from bench_matrix.conformance.kit import Kit
 from bench_matrix.conformance.models import BATCHES, LARGE, MODELS, THREADS
@@ -213,6 +213,13 @@ class BackendConformance:
             raise RuleBroken("threads-as-asked", f"asked for {THREADS} thread(s), more ran at once in "
                                                  f"{share:.0%} of the moments sampled while execute ran: the "
                                                  f"runtime does not keep to `threads`")
+
+    def test_profile_is_plausible(self, case: Case, conformance_kit: Kit) -> None:
+        """A session implementing Session.profile (optional: the default's reason is not checked)."""
+        session = conformance_kit.loaded(case).session
+        if type(session).profile is not Session.profile:
+            model = conformance_kit.model(case.framework, case.model)
+            check_profile(session, take(model.eval, slice(0, 1)), case.precision)
 
     def test_load_is_repeatable(self, case: Case, conformance_kit: Kit) -> None:
         self._same_as_first(case, conformance_kit, conformance_kit.reloaded(case), "load-is-repeatable",
