@@ -20,8 +20,8 @@ def tf_versions(*extra: str) -> dict[str, str]:
 def missing_tensorflow() -> str | None:
     """Why TensorFlow cannot be imported here, without importing it, or None."""
     if importlib.util.find_spec("tensorflow") is None:
-        return ("TensorFlow is not installed: `make setup` installs tensorflow-cpu and tf_keras as "
-                "requirements.lock pins them (a GPU build: docs/gpu.md)")
+        return ("TensorFlow is not installed: pip install tensorflow-cpu tf_keras at the versions "
+                "requirements.lock pins (in a checkout: make setup; a GPU build: docs/gpu.md)")
     return None
 
 

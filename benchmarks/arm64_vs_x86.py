@@ -16,7 +16,7 @@ from bench_matrix.report.analysis.summary import metric
 from bench_matrix.store import CellRecord, ResultStore
 
 SHORT = 110  # characters of a reason shown
-NOISE = 1e-5  # a relative MSE change below this is float rounding (fp32 sums of 800 samples in another order)
+NOISE = 1e-5  # a relative MSE change below this is float rounding (fp32 sums of the samples in another order)
 
 
 def _latest(path: Path) -> dict[str, CellRecord]:
@@ -65,10 +65,12 @@ def page(x86: dict[str, CellRecord], arm: dict[str, CellRecord]) -> str:
     keys = sorted(set(x86) | set(arm))
     ok = [k for k in keys if _status(x86.get(k)) == _status(arm.get(k)) == "ok"]
     differ = [k for k in ok if _verdict(_figure(x86[k], "mse"), _figure(arm[k], "mse")).startswith("**")]
+    scored = sorted({int(n) for k in ok for side in (x86, arm) if (n := _figure(side[k], "test_samples"))})
     lines = ["# What changes on ARM: x86 and the emulated arm64 board, cell by cell", "",
              f"{len(ok)} cells ok on both; {len(differ)} of them with a test MSE that differs beyond float "
              f"noise (relative {NOISE:g}): {', '.join(differ) or 'none'}. Same artifact, same test split "
-             "(800 samples); max |Δ| is each side's largest difference from the fp32 reference outputs "
+             f"({' or '.join(map(str, scored)) or 'no'} samples scored); max |Δ| is each side's largest "
+             "difference from the fp32 reference outputs "
              "computed on x86. Timings are not compared: the board's are qemu's.", "",
              "| cell | on arm64 | MSE x86 | MSE arm64 | arm64 vs x86 | max \\|Δ\\| x86 | max \\|Δ\\| arm64 |",
              "|---|---|---|---|---|---|---|"]

@@ -336,7 +336,7 @@ def test_tensorflow_backends_skip_where_tensorflow_is_missing(monkeypatch: pytes
     for backend in (TensorFlowBackend(), KerasPredictBackend(), TFLiteBackend(), TFTRTBackend()):
         for target in sorted({t for support in backend.supports for t in support.targets}):
             reasons = [backend.probe(target, "fp32"), backend.probe_source("tensorflow", "keras")]
-            assert "TensorFlow is not installed: `make setup` installs" in str(reasons), backend.name
+            assert "TensorFlow is not installed: pip install tensorflow-cpu" in str(reasons), backend.name
 
 
 def test_onnxruntime_pre_processes_in_a_relative_scratch_directory(source: SourceModel, tmp_path: Path,

@@ -17,7 +17,8 @@ INTRO = ("Each cell's test sample ran under its runtime's own profiler after the
          "Profiles): its time by operator kind and the precision each operator ran at, as shares of the "
          "profiled time.")
 SHARE_NOTE = "share of the profiled time in operators of that kind (docs/metrics.md) run at that precision."
-FP32_IN_INT8 = "fp32 in int8 %"
+FLOAT_IN_INT8 = "float in int8 %"
+FLOATS = ("fp32", "fp16", "bf16")
 METHOD = Column("Method", "backend, strategy and precision of the cell.", lambda row: row.record.cell.label,
                 "")
 
@@ -44,11 +45,11 @@ def overhead(row: Row) -> float | None:
     return ratio if ratio is not None and math.isfinite(ratio) else None
 
 
-def fp32_share(row: Row) -> float | None:
-    """An int8 cell's share of time in fp32 operators (None for other precisions)."""
+def float_share(row: Row) -> float | None:
+    """An int8 cell's share of time in operators that ran in floating point (None for other precisions)."""
     if row.record.cell.precision != "int8":
         return None
-    return math.fsum(share for (_, precision), share in shares(row).items() if precision == "fp32")
+    return math.fsum(share for (_, precision), share in shares(row).items() if precision in FLOATS)
 
 
 def _percent(value: float | None) -> str:
@@ -68,8 +69,9 @@ def columns(rows: list[Row]) -> list[Column]:
             *(Column(f"{k} {p} %", f"share of the profiled time in {k} operators run at {p}.",
                      lambda row, key=(k, p): _percent(shares(row).get(key, 0.0)), "profile")
               for k, p in pairs),
-            *([Column(FP32_IN_INT8, "an int8 cell's share of time in operators that ran at fp32.",
-                      lambda row: _percent(fp32_share(row)), "profile")] if int8 else [])]
+            *([Column(FLOAT_IN_INT8, "an int8 cell's share of time in operators that ran in floating "
+                                     "point (fp32, fp16 or bf16).",
+                      lambda row: _percent(float_share(row)), "profile")] if int8 else [])]
 
 
 def reasons(model: ModelSummary) -> list[str]:
@@ -90,7 +92,7 @@ def markdown_lines(model: ModelSummary, table: Callable[[list[str], list[bool], 
                   [[escape(c.render(row)) for c in shown] for row in found]),
             "", "Columns:", "", *(f"- **{escape(c.header)}**: {escape(c.note)}" for c in shown[:3]),
             f"- **KIND PRECISION %**: {escape(SHARE_NOTE)}",
-            *(f"- **{escape(c.header)}**: {escape(c.note)}" for c in shown if c.header == FP32_IN_INT8), "",
+            *(f"- **{escape(c.header)}**: {escape(c.note)}" for c in shown if c.header == FLOAT_IN_INT8), "",
             *(f"Not profiled: {escape(line)}" for line in reasons(model)), ""]
 
 
