@@ -132,16 +132,24 @@ def test_max_drop_without_a_baseline_result() -> None:
 
 
 def test_max_drop_on_a_device_without_the_baseline_uses_the_baselines_prepared_test_metrics() -> None:
-    """The baseline skipped there (no torch on a Pi): its MSE as the model was prepared, on as many samples."""
+    """The baseline skipped there (no torch on a Pi): its MSE as the model was prepared, on as many
+    samples."""
     from bench_matrix.report.analysis.judging import Judging, judged
     from bench_matrix.report.analysis.summary import summarize
 
     skipped = CellRecord(cell=BASE, status="skipped", reason="torch is not installed", env={"host": "h"})
-    cells = [record("onnxruntime", mse=0.0102, test_samples=200), record("openvino", mse=0.015, test_samples=200)]
+    cells = [record("onnxruntime", mse=0.0102, test_samples=200),
+             record("openvino", mse=0.015, test_samples=200)]
     info = {"baseline_key": BASE.key, "test_metrics": {"mse": 0.01}, "test_samples": 200}
     model = judged(summarize([skipped, *cells], {"m": info}, {}), {}, Judging(overrides={"max_drop": "5%"}))
-    verdicts = {row.record.cell.backend: row.verdict for row in model.models[0].rows}
+    from bench_matrix.report.render.text import baseline_note
+
+    rows = {row.record.cell.backend: row for row in model.models[0].rows}
+    verdicts = {backend: row.verdict for backend, row in rows.items()}
     assert verdicts["onnxruntime"].status == PASS and verdicts["openvino"].status == FAIL
+    assert rows["onnxruntime"].mse_delta == pytest.approx(0.0002) and rows["openvino"].speedup is None
+    note = baseline_note(model.models[0])
+    assert "ΔMSE is against its test metrics from where the model was prepared" in note
     assert "vs the baseline's 0.01" in verdicts["openvino"].failed[0].text
     other = summarize([skipped, cells[0]], {"m": {**info, "test_samples": 800}}, {})  # not the same samples
     (row,) = judged(other, {}, Judging(overrides={"max_drop": "5%"})).models[0].rows

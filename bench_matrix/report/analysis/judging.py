@@ -11,7 +11,6 @@ from typing import Any
 
 from bench_matrix.matrix.require import read_file
 from bench_matrix.matrix.requirements import Declared
-from bench_matrix.measurement import Measurement
 from bench_matrix.report.analysis.recommend import Candidate, recommend
 from bench_matrix.report.analysis.summary import ModelSummary, Report
 from bench_matrix.store import CellRecord
@@ -53,7 +52,7 @@ def judge_model(model: ModelSummary, declared: Declared, source: str, overrides:
     requirements = declared.of(model.name, overrides)
     if not requirements.data:
         return replace(model, requirements_from=source)
-    baseline = baseline_figures(model)
+    baseline = model.accuracy_baseline
     rows = tuple(replace(row, verdict=judge(row.record.metrics, requirements, model.task, baseline,
                                             model.implausible.get(row.record.cell.key)))
                  for row in model.rows)
@@ -62,18 +61,6 @@ def judge_model(model: ModelSummary, declared: Declared, source: str, overrides:
     where = source + (" and --require" if overrides else "")
     return replace(model, rows=rows, requirements=requirements, requirements_from=where,
                    recommendations=found)
-
-
-def baseline_figures(model: ModelSummary) -> Measurement | None:
-    """The fp32 baseline's figures `max_drop` compares with: its ok record's, else (a device without its
-    runtime) its test metrics from where the model was prepared, when every cell scored as many samples."""
-    if model.baseline is not None and model.baseline.status == "ok":
-        return model.baseline.metrics
-    prepared, samples = model.info.get("test_metrics"), model.info.get("test_samples")
-    scored = {row.record.metrics.figure("test_samples") for row in model.rows}
-    if isinstance(prepared, dict) and isinstance(samples, int) and scored == {samples}:
-        return Measurement.from_json({**prepared, "test_samples": samples})
-    return None
 
 
 def unmet(report: Report) -> list[str]:

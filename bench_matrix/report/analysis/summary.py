@@ -75,6 +75,10 @@ class ModelSummary:
     requirements_from: str = ""  # where they were read
     recommendations: tuple[Recommendation, ...] = ()  # per target (and host) its cells ran on
     reruns: tuple[Rerun, ...] = ()  # other runs that timed its shown artifacts on their hosts
+    # what accuracy is compared with (ΔMSE, max_drop): the baseline's ok record's figures, else its test
+    # metrics from where the model was prepared when every ok cell scored as many samples (a device without
+    # the baseline's runtime); None: neither
+    accuracy_baseline: Measurement | None = None
 
     @property
     def task(self) -> str:
@@ -171,7 +175,8 @@ def _model(name: str, records: list[CellRecord], info: dict[str, Any], history: 
     own_fp32 = {(r.cell.backend, r.cell.target): r for r in ok
                 if r.cell.strategy == "none" and r.cell.precision == "fp32"}
     headline_metric = HEADLINE.get(task_of(info), "")
-    rows = tuple(_row(r, reference, own_fp32.get((r.cell.backend, r.cell.target)), headline_metric)
+    accuracy = reference.metrics if reference is not None else prepared_baseline(info, ok)
+    rows = tuple(_row(r, reference, own_fp32.get((r.cell.backend, r.cell.target)), headline_metric, accuracy)
                  for r in ok)
     by_key = sorted(records, key=lambda r: r.cell.key)
     return ModelSummary(name=name, framework=framework, info=info, baseline_key=baseline_key, baseline=baseline,
@@ -180,7 +185,18 @@ def _model(name: str, records: list[CellRecord], info: dict[str, Any], history: 
                         suspects=suspects(ok), implausible=implausible(ok),
                         disturbed=problem_lines(ok, disturbed_phases),
                         wide=problem_lines(ok, wide_phases),
-                        reruns=reruns(ok, (r for r in history if r.cell.model == name)))
+                        reruns=reruns(ok, (r for r in history if r.cell.model == name)),
+                        accuracy_baseline=accuracy)
+
+
+def prepared_baseline(info: Mapping[str, Any], ok: list[CellRecord]) -> Measurement | None:
+    """The baseline's test metrics from where the model was prepared, when every ok cell scored as many test
+    samples (the fp32 outputs their max |Δ| is taken against); else None."""
+    metrics, samples = info.get("test_metrics"), info.get("test_samples")
+    scored = {record.metrics.figure("test_samples") for record in ok}
+    if isinstance(metrics, dict) and isinstance(samples, int) and scored == {samples}:
+        return Measurement.from_json({**metrics, "test_samples": samples})
+    return None
 
 
 def emulated(record: CellRecord) -> str | None:
@@ -267,17 +283,18 @@ def suspects(records: Iterable[CellRecord]) -> tuple[str, ...]:
     return tuple(sorted(lines))
 
 
-def _row(record: CellRecord, reference: CellRecord | None, own_fp32: CellRecord | None, headline_metric: str
-         ) -> Row:
+def _row(record: CellRecord, reference: CellRecord | None, own_fp32: CellRecord | None, headline_metric: str,
+         accuracy: Measurement | None) -> Row:
     own = _ratio(p50(own_fp32), p50(record)) if own_fp32 is not None else None
+    deltas = {"mse_delta": _difference(record, accuracy, "mse"),
+              "accuracy_delta": _difference(record, accuracy, headline_metric) if headline_metric else None}
     if reference is None:
-        return Row(record, False, None, None, None, own)
+        return Row(record, False, None, None, speedup_own_fp32=own, **deltas)
     return Row(record=record, is_baseline=record is reference,
                speedup=_paired(record, reference) or _ratio(p50(reference), p50(record)),
                speedup_half=_paired_half(record, reference),
                size_ratio=_ratio(*(figure(r, lambda m: m.size.bytes) for r in (reference, record))),
-               mse_delta=_difference(record, reference, "mse"), speedup_own_fp32=own,
-               accuracy_delta=_difference(record, reference, headline_metric) if headline_metric else None)
+               speedup_own_fp32=own, **deltas)
 
 
 def _paired(record: CellRecord, reference: CellRecord) -> float | None:
@@ -291,8 +308,8 @@ def _paired_half(record: CellRecord, reference: CellRecord) -> float | None:
     return number(found.ci_half) if found is not None and record is not reference else None
 
 
-def _difference(record: CellRecord, reference: CellRecord, key: str) -> float | None:
-    value, base = metric(record, key), metric(reference, key)
+def _difference(record: CellRecord, accuracy: Measurement | None, key: str) -> float | None:
+    value, base = metric(record, key), number(accuracy.figure(key)) if accuracy is not None else None
     return None if value is None or base is None else value - base
 
 

@@ -119,6 +119,9 @@ def baseline_note(model: ModelSummary) -> str | None:
         return None
     delta = DELTA_NAMES.get(model.task, "the fidelity figures")
     missing = f"speed-up, size ratio and {delta} are not available"
+    if model.accuracy_baseline is not None:
+        missing = (f"speed-up and size ratio are not available; {delta} is against its test metrics from "
+                   f"where the model was prepared")
     if not model.baseline_key:
         return f"No baseline is recorded for this model (its preparation never finished): {missing}."
     state = "is not in the store" if model.baseline is None else model.baseline.status
