@@ -187,6 +187,20 @@ def test_t95_matches_student_quantiles(df, quantile, rel):
     assert t95(df) == pytest.approx(quantile, rel=rel)
 
 
+def test_two_rounds_whose_medians_agree_exactly_are_known_to_their_windows_own_median_error_not_to_zero():
+    """Seen in CI: two windows of a 6 µs model with the same median to the nanosecond gave a 0-wide
+    interval and stopped the rounds; the rounds' spread is at least a window median's own error."""
+    rng = np.random.default_rng(0)
+    calls = 1500
+    first = np.round(5.969e-3 + rng.normal(0.0, 2e-5, calls), 6)  # ms, to the nanosecond
+    second = first[rng.permutation(calls)]  # other calls, the same median
+    assert np.median(first) == np.median(second)
+    interval = p50_interval(one([first, second]))
+    error = math.sqrt(math.pi / 2) * 2e-5 / math.sqrt(calls) / 5.969e-3  # a median's standard error, relative
+    # RERUN (√2) × t(1 dof) × √(error² ÷ 2 rounds)
+    assert interval.half_width == pytest.approx(t95(1) * error, rel=0.15)
+
+
 def test_a_single_process_interval_is_a_t_interval_on_the_logs():
     interval = level_interval(2.0, log_levels(one([1.0, 2.0, 4.0])), None)
     half = 4.303 * math.log(2) / math.sqrt(3)  # sd of (0, ln 2, 2 ln 2) is ln 2; df 2

@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import itertools
 import math
-from statistics import fmean
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from statistics import fmean
 
 import numpy as np
 
@@ -26,6 +26,8 @@ SPREADS = 5  # sees (the SMT sibling's other VM) slowed such by 30-70 % (metrics
 NEAR = 2
 FIT_STEPS = 50  # alternating means a round-and-process fit takes (it converges geometrically)
 STEPS = 8  # successive windows of one process it takes to tell a strayed window from the cell's own spread
+# a median's standard error is this × σ/√n (normal calls; σ from the IQR: ÷ 1.349)
+MEDIAN_SE = math.sqrt(math.pi / 2)
 
 Slot = tuple[int, int]  # (round, process): one window of one of a cell's session processes
 
@@ -153,14 +155,15 @@ def steady(levels: Mapping[Slot, float], rate: bool = False) -> dict[Slot, float
 
 
 def level_interval(value: float, levels: Mapping[Slot, float], model: Spread | None,
-                   spread: float = 1.0) -> Interval | None:
-    """`value` with the 95 % interval of its log level: the rounds' part (the spread of the per-round means)
-    and the processes' (the cell's moderated spread ÷ its processes), `spread` times as wide; None with fewer
-    than 2 rounds or a non-positive figure."""
+                   spread: float = 1.0, noise: float = 0.0) -> Interval | None:
+    """`value` with the 95 % interval of its log level: the rounds' part (the spread of the per-round means,
+    at least `noise`, a window level's own variance) and the processes' (the cell's moderated spread ÷ its
+    processes), `spread` times as wide; None with fewer than 2 rounds or a non-positive figure."""
     means = _round_means(levels)
     if value <= 0 or len(means) < 2:
         return None
-    by_rounds = (float(np.var(list(means.values()), ddof=1)) / len(means), len(means) - 1)
+    observed = float(np.var(list(means.values()), ddof=1))
+    by_rounds = (max(observed, noise) / len(means), len(means) - 1)
     return _interval(value, [by_rounds, *_process_part(levels, model)], spread, len(means))
 
 
@@ -190,7 +193,20 @@ def p50_interval(series: Mapping[Slot, np.ndarray], model: Spread | None = None)
         return None
     pooled_median = float(np.median(np.concatenate([np.asarray(v, dtype=np.float64)
                                                     for v in series.values()])))
-    return level_interval(pooled_median, steady(log_levels(medians(series))), model, RERUN)
+    levels = steady(log_levels(medians(series)))
+    return level_interval(pooled_median, levels, model, RERUN, median_noise(series[slot] for slot in levels))
+
+
+def median_noise(windows: Iterable[np.ndarray]) -> float:
+    """A window median's own variance on the log scale, from its calls (MEDIAN_SE·σ/√n), averaged over the
+    windows: what the rounds' spread is at least, however alike their medians came out (two rounds can
+    agree to the nanosecond)."""
+    found = []
+    for values in windows:
+        low, middle, high = np.percentile(values, (25, 50, 75)) if len(values) >= 4 else (0.0, 0.0, 0.0)
+        if middle > 0:
+            found.append((MEDIAN_SE * (high - low) / 1.349 / math.sqrt(len(values)) / middle) ** 2)
+    return fmean(found) if found else 0.0
 
 
 def level_width(p50: Interval) -> float:
