@@ -69,3 +69,8 @@ def cells(machine: Machine, names: list[str], processes: int = 1, **session) -> 
 def round_keys(timed: Timed, kind: str = LATENCY) -> set[int]:
     """The rounds a cell was timed in (any of its processes)."""
     return {r for r, _ in (*timed.kept.get(kind, {}), *timed.dropped.get(kind, {}))}
+
+
+def one(per_round) -> dict:
+    """A single process's values by slot (round, 0)."""
+    return {(r, 0): value for r, value in enumerate(per_round)}
