@@ -96,9 +96,9 @@ def test_the_record_says_what_was_open_and_marks_a_width_only_where_the_target_w
                 **cells(machine, ["a", "b"], base_ms=4.0, noise=0.2)}
     timed, _ = run(machine, sessions, {}, accurate("base", "a", "b"),
                    RoundsSettings(min_rounds=5, max_rounds=8, budget_s=1e9, target=0.001))
-    loose = figures(timed["a"], timed["base"], RoundsSettings(target=LOOSE), LIMITS, {}).fields
+    loose = figures(timed["a"], timed["base"], RoundsSettings(target=LOOSE), LIMITS, {})
     assert loose["rounds"]["open"] == timed["a"].open and loose["rounds"]["asked"] is False
     assert loose["rounds"]["window_spread"] > 0
     assert loose["interference"]["phases"]["latency"]["wide"] is None
-    asked = figures(timed["a"], timed["base"], RoundsSettings(target=0.001, asked=True), LIMITS, {}).fields
+    asked = figures(timed["a"], timed["base"], RoundsSettings(target=0.001, asked=True), LIMITS, {})
     assert asked["interference"]["phases"]["latency"]["wide"].startswith("known to ±")

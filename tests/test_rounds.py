@@ -244,13 +244,13 @@ def test_figures_record_the_processes_and_mark_only_cells_that_did_not_leave_nar
     base, left, spent = timed(10.0, "budget"), timed(5.0, "width"), timed(5.0, "budget")
     model = spread([base, left, spent])
     settings = RoundsSettings(target=0.001, window_s=0.1, asked=True)
-    record = figures(left, base, settings, Limits(), {LATENCY: model}).fields
+    record = figures(left, base, settings, Limits(), {LATENCY: model})
     assert record["rounds"]["processes"] == 2 and record["rounds"]["rounds"] == 6
     assert record["rounds"]["model_spread"] == pytest.approx(model.relative, abs=1e-6)
     assert model.relative > 0.01  # the 4 % between the processes is seen
     assert record["rounds"]["reached"] > settings.target  # wider than the target, yet it left narrow:
     assert record["interference"]["phases"][LATENCY]["wide"] is None  # not marked
-    marked = figures(spent, base, settings, Limits(), {LATENCY: model}).fields["interference"]
+    marked = figures(spent, base, settings, Limits(), {LATENCY: model})["interference"]
     wide = marked["phases"][LATENCY]["wide"]
     assert wide.startswith("known to ±")  # the budget ran out first; the 4 % apart processes, not the rounds,
     assert "however many rounds; more processes a cell (`processes`) would narrow it" in wide  # keep it wide
@@ -259,7 +259,7 @@ def test_figures_record_the_processes_and_mark_only_cells_that_did_not_leave_nar
     hit = Timed(stop="budget")  # one window of the twelve slowed 1.45 times by a neighbour
     for slot, window in left.kept[LATENCY].items():
         hit.add(slot, Window(LATENCY, window.durations_ms * (1.45 if slot == (3, 1) else 1.0)))
-    slowed = figures(hit, base, settings, Limits(), {LATENCY: model}).fields
+    slowed = figures(hit, base, settings, Limits(), {LATENCY: model})
     assert slowed["rounds"]["strayed"] == 1 and slowed["latency_ms"]["n"] == 12 * 30  # its calls stay
     assert slowed["speedup"]["value"] == pytest.approx(record["speedup"]["value"], rel=0.01)
 
@@ -282,7 +282,7 @@ def test_a_cell_wide_for_want_of_rounds_says_about_how_many_times_as_many_would_
     base, cell = timed(10.0), timed(5.0)
     model = spread([base, cell])
     settings = RoundsSettings(target=0.005, window_s=0.1, asked=True)
-    record = figures(cell, base, settings, Limits(), {LATENCY: model}).fields
+    record = figures(cell, base, settings, Limits(), {LATENCY: model})
     reached, wide = record["rounds"]["reached"], record["interference"]["phases"][LATENCY]["wide"]
     times = float(wide.split("about ")[1].split(" times the rounds would reach it (`timing_budget_s`)")[0])
     assert reached > 0.005 and times == pytest.approx((reached / 0.005) ** 2, rel=0.2), wide

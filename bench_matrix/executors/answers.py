@@ -76,7 +76,7 @@ class OpenAnswers:
                 continue
             reference = timed.get(self.references.get(key, self.baseline or ""))
             fields = figures(cell, reference if reference is not cell else None, self.settings, LIMITS,
-                             spreads).fields
+                             spreads)
             found[key] = Entry(key, Measurement.from_json({**self.evaluated[key], **fields}),
                                key == self.baseline)
         return found

@@ -22,7 +22,7 @@ from bench_matrix.measure.rounds import Spread
 from bench_matrix.measure.schedule import (LATENCY, LOOSE, Rounds, RoundsSettings, SessionLost, Timed,
                                            measure_groups, spread)
 from bench_matrix.measurement import Measurement
-from bench_matrix.scenarios.timed import SAMPLED, THROUGHPUT, figures
+from bench_matrix.scenarios.timed import SAMPLED, THROUGHPUT, figures, raw_samples
 
 DISTURBED_SHARE = 0.25  # more of a kind's windows disturbed than this marks the cell
 EVERY = 0.02  # every cell's target where no requirements say what is open (compare --remeasure)
@@ -148,7 +148,7 @@ def _result(key: str, timed: Timed, base: Timed | None, sessions: _Sessions, set
         return CellEnded(key, error=timed.failed or str(done or "not measured"), user_error=user_error)
     if not timed.series(LATENCY):
         return CellEnded(key, error="no window was timed (its rounds stopped first)")
-    timing = figures(timed, base, settings, LIMITS, spreads)
-    fields = {**timing.fields, "timing_window": window, **done.metrics.to_json()}
-    return CellEnded(key, Measured(Measurement.from_json(fields), {**timing.samples, **done.samples},
+    fields = {**figures(timed, base, settings, LIMITS, spreads), "timing_window": window,
+              **done.metrics.to_json()}
+    return CellEnded(key, Measured(Measurement.from_json(fields), {**raw_samples(timed), **done.samples},
                                       done.env))

@@ -181,32 +181,43 @@ def paired_interval(baseline: Mapping[Slot, float], cell: Mapping[Slot, float],
     return _interval(math.exp(float(np.mean(ratios))), parts, 1.0, len(ratios))
 
 
+@dataclass(frozen=True)
+class Level:
+    """A window's median and that median's own variance on the log scale ((MEDIAN_SE·σ/√n ÷ median)², σ from
+    the IQR; None under 4 calls): computed once a window, not every round."""
+
+    median: float
+    noise: float | None
+
+
+def window_level(values: np.ndarray) -> Level:
+    """A window's `Level`, from one pass over its calls."""
+    if len(values) < 4:
+        return Level(float(np.median(values)), None)
+    low, middle, high = (float(q) for q in np.percentile(values, (25, 50, 75)))
+    noise = (MEDIAN_SE * (high - low) / 1.349 / math.sqrt(len(values)) / middle) ** 2 if middle > 0 else None
+    return Level(middle, noise)
+
+
 def medians(series: Mapping[Slot, np.ndarray]) -> dict[Slot, float]:
     """The median of each slot's kept window."""
     return {slot: float(np.median(values)) for slot, values in series.items() if len(values)}
 
 
-def p50_interval(series: Mapping[Slot, np.ndarray], model: Spread | None = None) -> Interval | None:
+def p50_interval(series: Mapping[Slot, np.ndarray], model: Spread | None = None,
+                 levels: Mapping[Slot, Level] | None = None) -> Interval | None:
     """The pooled median of every window (the stored samples') with the interval a rerun's would fall in:
-    `level_interval`'s of the steady per-window medians, RERUN times as wide."""
+    `level_interval`'s of the steady per-window medians, RERUN times as wide, never narrower than the
+    windows' own median error (two rounds can agree to the nanosecond); `levels`: the windows' `Level`s,
+    where already known."""
     if not series:
         return None
     pooled_median = float(np.median(np.concatenate([np.asarray(v, dtype=np.float64)
                                                     for v in series.values()])))
-    levels = steady(log_levels(medians(series)))
-    return level_interval(pooled_median, levels, model, RERUN, median_noise(series[slot] for slot in levels))
-
-
-def median_noise(windows: Iterable[np.ndarray]) -> float:
-    """A window median's own variance on the log scale, from its calls (MEDIAN_SE·σ/√n), averaged over the
-    windows: what the rounds' spread is at least, however alike their medians came out (two rounds can
-    agree to the nanosecond)."""
-    found = []
-    for values in windows:
-        low, middle, high = np.percentile(values, (25, 50, 75)) if len(values) >= 4 else (0.0, 0.0, 0.0)
-        if middle > 0:
-            found.append((MEDIAN_SE * (high - low) / 1.349 / math.sqrt(len(values)) / middle) ** 2)
-    return fmean(found) if found else 0.0
+    levels = levels if levels is not None else {slot: window_level(v) for slot, v in series.items() if len(v)}
+    steady_levels = steady(log_levels({slot: level.median for slot, level in levels.items()}))
+    noises = [found for slot in steady_levels if (found := levels[slot].noise) is not None]
+    return level_interval(pooled_median, steady_levels, model, RERUN, fmean(noises) if noises else 0.0)
 
 
 def level_width(p50: Interval) -> float:

@@ -14,13 +14,13 @@ from collections import Counter
 from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Protocol
 
 import numpy as np
 
-from bench_matrix.measure.rounds import (Interval, Slot, Spread, level_width, log_levels, medians,
-                                         p50_interval, pooled, process_spread, speedup,
-                                         steady)
+from bench_matrix.measure.rounds import (Interval, Level, Slot, Spread, level_width, log_levels, p50_interval,
+                                         pooled, process_spread, speedup, steady, window_level)
 
 LATENCY = "latency"  # the kind of window whose intervals decide when the rounds stop
 
@@ -35,6 +35,11 @@ class Window:
     samples: int = 1
     disturbed: str | None = None
     interference: dict[str, object] = field(default_factory=dict)
+
+    @cached_property
+    def level(self) -> Level:
+        """Its median and that median's own error, computed once (the rounds ask every round)."""
+        return window_level(self.durations_ms)
 
 
 class SessionLost(Exception):
@@ -111,6 +116,14 @@ class Timed:
         """Those windows' durations in ms, by slot."""
         return {slot: w.durations_ms for slot, w in self.windows(kind, clean, every).items()}
 
+    def levels(self, kind: str, clean: bool = False, every: bool = False) -> dict[Slot, Level]:
+        """Those windows' `Level`s (median, its own error), by slot."""
+        return {slot: w.level for slot, w in self.windows(kind, clean, every).items() if len(w.durations_ms)}
+
+    def medians(self, kind: str, clean: bool = False, every: bool = False) -> dict[Slot, float]:
+        """Those windows' medians, by slot."""
+        return {slot: level.median for slot, level in self.levels(kind, clean, every).items()}
+
     def rounds(self, kind: str = LATENCY) -> int:
         """The rounds whose windows its figures of `kind` pool."""
         return len({r for r, _ in self.windows(kind)})
@@ -126,8 +139,7 @@ def spread(cells: Iterable[Timed], kind: str = LATENCY, rate: bool = False) -> S
     """How the session processes of a model's cells differ in `kind`'s windows (their medians, or their
     `rate`s), pooled over the cells (from their clean windows)."""
     def levels(timed: Timed) -> dict[Slot, float]:
-        clean = timed.windows(kind, clean=True)
-        return rates(clean) if rate else medians({slot: w.durations_ms for slot, w in clean.items()})
+        return rates(timed.windows(kind, clean=True)) if rate else timed.medians(kind, clean=True)
 
     return pooled(process_spread(steady(log_levels(levels(t)), rate)) for t in cells)
 
@@ -144,17 +156,17 @@ def paired(baseline: Timed | None, timed: Timed, model: Spread | None = None,
     `clean`) every round both had when fewer than 2 were clean: what disturbs a round disturbs both."""
     if baseline is None:
         return None
-    found = speedup(*(medians(t.series(LATENCY, clean=True)) for t in (baseline, timed)), model)
+    found = speedup(*(t.medians(LATENCY, clean=True) for t in (baseline, timed)), model)
     if found is not None or clean:
         return found
-    return speedup(*(medians(t.series(LATENCY, every=True)) for t in (baseline, timed)), model)
+    return speedup(*(t.medians(LATENCY, every=True) for t in (baseline, timed)), model)
 
 
 def narrow(timed: Timed, baseline: Timed | None, settings: RoundsSettings,
            model: Spread | None = None) -> bool:
     """Whether the cell's p50 interval (and speed-up interval, beside a baseline) is within the target after
     the minimum number of clean rounds (`model`: the model's pooled process spread)."""
-    p50 = p50_interval(timed.series(LATENCY, clean=True), model)
+    p50 = p50_interval(timed.series(LATENCY, clean=True), model, timed.levels(LATENCY, clean=True))
     if p50 is None or p50.rounds < settings.min_rounds or level_width(p50) > settings.target:
         return False
     if baseline is None or baseline is timed:

@@ -13,12 +13,10 @@ from typing import Any
 import numpy as np
 
 from bench_matrix.measure.interference import Limits
-from bench_matrix.measure.rounds import Interval, Slot, Spread, level_width, moderated, p50_interval
-from bench_matrix.measure.rounds import (log_levels, medians, process_spread, rate_interval, steady,
-                                         window_spread)
+from bench_matrix.measure.rounds import Interval, Level, Slot, Spread, level_width, moderated, p50_interval
+from bench_matrix.measure.rounds import log_levels, process_spread, rate_interval, steady, window_spread
 from bench_matrix.measure.schedule import LATENCY, RoundsSettings, Timed, Window, paired, rates
 from bench_matrix.measure.stats import latency_summary, pack_samples
-from bench_matrix.scenarios.base import Outcome
 
 E2E, THROUGHPUT = "latency_e2e", "throughput"
 MANY_ROUNDS_T = 1.96  # the 95 % t-quantile the intervals tend to as rounds are added
@@ -27,12 +25,12 @@ SAMPLED = {LATENCY: "latency_ms", E2E: "latency_ms_e2e", THROUGHPUT: "batch_ms"}
 
 
 def figures(timed: Timed, baseline: Timed | None, settings: RoundsSettings, limits: Limits,
-            spreads: Mapping[str, Spread | None]) -> Outcome:
-    """The cell's timed record fields and raw series from its rounds (`baseline`: the baseline cell's, for
-    the paired speed-up; None for the baseline itself or without one; `spreads`: the model's pooled process
-    spread by kind)."""
+            spreads: Mapping[str, Spread | None]) -> dict[str, Any]:
+    """The cell's timed record fields from its rounds (`baseline`: the baseline cell's, for the paired
+    speed-up; None for the baseline itself or without one; `spreads`: the model's pooled process spread by
+    kind). Cheap enough to ask every round: each window's median is computed once."""
     series = {kind: found for kind in SAMPLED if (found := timed.series(kind))}
-    fields: dict[str, Any] = {name: _latency(series[kind], spreads.get(kind))
+    fields: dict[str, Any] = {name: _latency(series[kind], spreads.get(kind), timed.levels(kind))
                               for kind, name in SERIES.items() if kind in series}
     fields.update(_throughput(timed.windows(THROUGHPUT), spreads.get(THROUGHPUT)))
     model = spreads.get(LATENCY)
@@ -41,9 +39,13 @@ def figures(timed: Timed, baseline: Timed | None, settings: RoundsSettings, limi
         fields["speedup"] = _rounded(ratio.as_dict())
     fields["rounds"], reached = _rounds(timed, settings, series.get(LATENCY, {}), model, ratio)
     fields["interference"] = _interference(timed, settings, limits, reached)
-    samples = {SAMPLED[kind]: pack_samples(np.concatenate(list(found.values())) * 1e6)
-               for kind, found in series.items()}
-    return Outcome(fields, samples)
+    return fields
+
+
+def raw_samples(timed: Timed) -> dict[str, bytes]:
+    """The record's raw series: every kept window's calls of each sampled kind, packed (once, at the end)."""
+    return {name: pack_samples(np.concatenate(list(found.values())) * 1e6)
+            for kind, name in SAMPLED.items() if (found := timed.series(kind))}
 
 
 def _rounds(timed: Timed, settings: RoundsSettings, series: dict[Slot, np.ndarray], model: Spread | None,
@@ -51,11 +53,11 @@ def _rounds(timed: Timed, settings: RoundsSettings, series: dict[Slot, np.ndarra
     """The record's `rounds` (how many, why they stopped, the precision asked for and the width reached: the
     wider of the run's p50 and the speed-up, the answer still open, the processes and how they differed, how
     one window differed from the next, the windows left out as `strayed`), the width reached, its floor."""
-    every = log_levels(medians(series))
+    every = log_levels(timed.medians(LATENCY))
     levels = steady(every)
     own, noise = moderated(process_spread(levels), model), window_spread(levels)
     processes = len({j for _, j in timed.windows(LATENCY)})
-    p50 = p50_interval(series, model)
+    p50 = p50_interval(series, model, timed.levels(LATENCY))
     spread = own.relative if own else 0.0
     widths = [Width(level_width(p50), _floor(processes, own), spread) if p50 else None,
               Width(ratio.half_width, _floor(processes, own, model), spread) if ratio else None]
@@ -85,11 +87,12 @@ def _floor(processes: int, *spreads: Spread | None) -> float:
     return MANY_ROUNDS_T * math.sqrt(sum(parts))
 
 
-def _latency(series: dict[Slot, np.ndarray], model: Spread | None) -> dict[str, Any]:
+def _latency(series: dict[Slot, np.ndarray], model: Spread | None, levels: Mapping[Slot, Level]
+             ) -> dict[str, Any]:
     """Percentiles of every kept window pooled; the interval a rerun's p50 falls in, from the spread of the
-    per-round medians and of the processes."""
+    per-round medians (the windows' `levels`) and of the processes."""
     summary = latency_summary(np.concatenate(list(series.values())) * 1e6)
-    interval = p50_interval(series, model)
+    interval = p50_interval(series, model, levels)
     if interval is not None:
         summary.update(p50_ci=[interval.low, interval.high],
                        p50_ci_rel=(interval.high - interval.low) / summary["p50"])
