@@ -49,7 +49,8 @@ def train_torch(factory: str, inputs: Inputs, y: np.ndarray, spec: TrainingSpec,
         losses.append(total / len(yt))
         epochs.ended(len(losses), losses[-1])
     train_s = time.perf_counter() - begin
-    torch.save(model.eval().state_dict(), out)
+    with open(out, "wb") as file:  # a file, not a path: torch names the archive's entries after a path's
+        torch.save(model.eval().state_dict(), file)  # stem, here the partial name with the pid in it
     return {"epochs": spec.epochs, "batch_size": spec.batch_size, "lr": spec.lr, "train_s": round(train_s, 2),
             "final_train_loss": losses[-1], "train_samples": count(inputs), "threads": threads}
 
