@@ -9,8 +9,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bench_matrix.plugin import Backend, Inputs, Session, TensorSpec, cuda_mismatch_reason, example_inputs, \
-    flat_outputs, installed_versions, no_gpu_reason, precision_reason, quiet_torch, use_engine
+from bench_matrix.plugin import Backend, Inputs, Profile, Session, TensorSpec, cuda_mismatch_reason, \
+    example_inputs, flat_outputs, installed_versions, no_gpu_reason, precision_reason, quiet_torch, use_engine
+
+from ._torch_profile import torch_profile
 
 
 __all__ = ["quiet_torch", "use_engine"]  # re-exported for the torch backends
@@ -20,6 +22,9 @@ if TYPE_CHECKING:
 
 # The dtype a module computes in at each precision; int8 models take and return float32.
 DTYPES = {"fp32": "float32", "fp16": "float16", "bf16": "bfloat16", "int8": "float32"}
+GPU_PROFILE_REASON = ("torch.profiler's CPU times of a GPU cell are kernel launches, not the kernels' run "
+                      "time, and its GPU kernel times (ProfilerActivity.CUDA) are not attributed to "
+                      "operators yet")
 
 
 def torch_versions() -> dict[str, str]:
@@ -149,13 +154,18 @@ class TorchSession(Session):
     """A torch module (eager, TorchScript or Torch-TensorRT) run under inference_mode on the CPU or one GPU; the
     module is called with every input positionally, in the inputs' order."""
 
-    def __init__(self, module: "torch.nn.Module", target: str, precision: str, facts: dict[str, Any] | None = None):
+    def __init__(self, module: "torch.nn.Module", target: str, precision: str,
+                 facts: dict[str, Any] | None = None, profiled_as: str | None = None):
+        """`profiled_as`: the name under which a profile counts the call's time in no recorded op (what runs
+        without the profiler seeing it), or None to leave that time out."""
         import torch
 
         self._torch = torch
         self._module = module
         self._device = torch.device("cpu" if target == "cpu" else "cuda")
         self._dtype = torch_dtype(precision)
+        self._precision = precision
+        self._profiled_as = profiled_as
         self._sync = target != "cpu"
         self._facts = facts or {}
         if self._sync:
@@ -176,6 +186,14 @@ class TorchSession(Session):
     def fetch(self, outputs: Any) -> list[np.ndarray]:
         """Every output (flat_outputs' order) as a float32 host array, copied back from the GPU."""
         return [out.float().cpu().numpy() for out in flat_outputs(outputs)]
+
+    def profile(self, prepared: tuple["torch.Tensor", ...], calls: int) -> Profile:
+        """torch.profiler's self CPU time per op over `calls` calls (docs/metrics.md, Profiles); none on a
+        GPU."""
+        if self._sync:
+            return Profile(reason=GPU_PROFILE_REASON)
+        compute = "fp32" if self._precision == "int8" else self._precision  # an int8 model's float parts
+        return torch_profile(lambda: self.execute(prepared), calls, compute, self._profiled_as)
 
     def info(self) -> dict[str, Any]:
         info = {"device": str(self._device), "threads": self._torch.get_num_threads(),

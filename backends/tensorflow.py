@@ -9,10 +9,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bench_matrix.plugin import Backend, ConvertRequest, Inputs, Session, SourceModel, Support, TensorSpec, \
-    example_inputs, flat_outputs, tensorflow, thread_settings
+from bench_matrix.plugin import Backend, ConvertRequest, Inputs, Profile, Session, SourceModel, Support, \
+    TensorSpec, example_inputs, flat_outputs, tensorflow, thread_settings
 
 from ._tf import keras_arguments, missing_tensorflow, probe_tensorflow_gpu, tf_versions
+from ._tf_profile import GPU_REASON, tf_profile
 
 if TYPE_CHECKING:
     import tensorflow as tf
@@ -118,6 +119,12 @@ class FunctionSession(Session):
     def fetch(self, outputs: Any) -> list[np.ndarray]:
         return [np.asarray(out.numpy(), dtype=np.float32) for out in flat_outputs(outputs)]
 
+    def profile(self, prepared: list["tf.Tensor"], calls: int) -> Profile:
+        """tf.profiler's op times over `calls` calls (docs/metrics.md, Profiles); none on a GPU."""
+        if self._sync:
+            return Profile(reason=GPU_REASON)
+        return tf_profile(lambda: self.execute(prepared), calls, "fp32")
+
     def info(self) -> dict[str, Any]:
         facts = {"device": self._device, "output_device": self._output_device, "call_path": "tf.function",
                  **thread_settings()}
@@ -143,6 +150,10 @@ class PredictSession(Session):
 
     def fetch(self, outputs: Any) -> list[np.ndarray]:
         return [np.asarray(out, dtype=np.float32) for out in flat_outputs(outputs)]
+
+    def profile(self, prepared: Any, calls: int) -> Profile:
+        """tf.profiler's op times over `calls` calls of predict, its tf.data pipeline's ops among them."""
+        return tf_profile(lambda: self.execute(prepared), calls, "fp32")
 
     def info(self) -> dict[str, Any]:
         return {"device": DEVICES["cpu"], "call_path": "model.predict", **thread_settings()}

@@ -11,14 +11,18 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from bench_matrix.plugin import QAT_KINDS, Backend, ConvertRequest, Inputs, Session, StrategySpec, Support, \
-    count, take, tensorflow
+from bench_matrix.plugin import QAT_KINDS, Backend, ConvertRequest, Inputs, Profile, Session, StrategySpec, \
+    Support, count, take, tensorflow
 
 from ._common import calibration_data
 from ._tf import missing_tensorflow, tf_versions
 
 FILE = "model.tflite"
 KERAS_FORMATS = ("keras", "h5", "saved_model", "keras_qat")
+NO_OP_PROFILER = ("its Python Interpreter gives no per-operator times (no profiler API), and the op profiler "
+                  "of LiteRT's C++ benchmark_model (--enable_op_profiling=true) is in neither pip package: "
+                  "ai-edge-litert's litert-benchmark times whole runs only. A benchmark_model binary built "
+                  "from LiteRT's sources would give them")
 
 
 class TFLiteBackend(Backend):
@@ -181,6 +185,10 @@ class TFLiteSession(Session):
 
     def fetch(self, outputs: list[np.ndarray]) -> list[np.ndarray]:
         return [_dequantised(detail, out) for detail, out in zip(self._outputs, outputs)]
+
+    def profile(self, prepared: Prepared, calls: int) -> Profile:
+        """None: no interpreter reachable from Python times its ops (docs/metrics.md, Profiles)."""
+        return Profile(reason=f"{self._interpreter_name}: {NO_OP_PROFILER}")
 
     def info(self) -> dict[str, Any]:
         return {"interpreter": self._interpreter_name, "threads": self._threads,

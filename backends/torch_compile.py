@@ -21,6 +21,9 @@ MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagrap
 CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
 AOT_MODES = ("default", "max-autotune-no-cudagraphs")  # an AOTInductor package has no CUDA graphs
 PACKAGE = "model.pt2"
+# a package runs its generated kernels unseen by torch.profiler (only its fallbacks to aten ops are recorded):
+# a profile counts a call's time outside those under this name
+AOT_KERNELS = "aot_inductor::generated_kernels"
 CACHE = "inductor-cache"  # the Inductor cache a torch_compile artifact carries: its compilation, done once
 
 
@@ -156,7 +159,7 @@ class AotInductorBackend(InductorBackend):
             model = torch._inductor.aoti_load_package(str(artifact_dir / meta["file"]))
         facts = {"mode": meta["mode"], "inductor_configs": meta["inductor_configs"],
                  "batch_range": [1, meta["max_batch"]]}
-        session = TorchSession(model, target, precision, facts)
+        session = TorchSession(model, target, precision, facts, profiled_as=AOT_KERNELS)
         run_batches(session, specs_from_list(meta["inputs"]), cell_batches(meta["max_batch"]))
         return session
 

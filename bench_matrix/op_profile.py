@@ -10,14 +10,21 @@ from typing import Any
 # the normalised kinds of operator, the same for every runtime
 KINDS = ("conv", "matmul", "pool", "activation", "quant", "reshape", "other")
 PRECISIONS = ("fp32", "fp16", "bf16", "int8", "other")
-# (word in the lower-cased op type, kind), the first found decides: "convert" before "conv", "matmul" before
-# "quant" (DynamicQuantizeMatMul is a MatMul); reshape covers layout copies (Reorder, Transpose, Concat)
-KIND_WORDS = (("convert", "quant"), ("conv", "conv"), ("matmul", "matmul"), ("gemm", "matmul"),
-              ("fullyconnected", "matmul"), ("innerproduct", "matmul"), ("pool", "pool"), ("quant", "quant"),
-              *((word, "activation") for word in ("relu", "sigmoid", "tanh", "elu", "clip", "softmax",
-                                                  "swish", "mish", "hardsigmoid")),
+# (word in the lower-cased op type, kind), the first found decides: tf.data's datasets (TensorSliceDataset,
+# ConcatenateDataset) are other whatever they name, "convert" before "conv", "matmul" before
+# "quant" (DynamicQuantizeMatMul is a MatMul, so is quantized::linear); reshape covers layout copies (Reorder,
+# Transpose, Concat). torch's ops: aten::addmm, aten::mm, aten::bmm, aten::linear and
+# mkldnn::_linear_pointwise are matmul ("::linear" and "_linear", not "linear": ONNX's DequantizeLinear is
+# quant, QLinearAdd other); aten::clamp_min is eager ReLU's work; aten::view and aten::_unsafe_view reshape
+KIND_WORDS = (("dataset", "other"), ("convert", "quant"), ("conv", "conv"),
+              *((word, "matmul") for word in ("matmul", "gemm", "fullyconnected", "innerproduct", "addmm",
+                                              "bmm", "::mm", "::linear", "_linear")),
+              ("pool", "pool"), ("quant", "quant"),
+              *((word, "activation") for word in ("relu", "sigmoid", "tanh", "elu", "clip", "clamp",
+                                                  "softmax", "swish", "mish", "hardsigmoid", "silu")),
               *((word, "reshape") for word in ("reshape", "reorder", "transpose", "flatten", "squeeze",
-                                               "concat", "gather", "slice", "split", "copy", "pad")))
+                                               "concat", "gather", "slice", "split", "copy", "pad", "view",
+                                               "permute", "contiguous")))
 
 
 def kind_of(op_type: str) -> str:

@@ -212,6 +212,13 @@ def test_interpreter_is_litert_when_installed(build: Build) -> None:
     assert BACKEND.versions()["ai-edge-litert"] == version("ai-edge-litert")
 
 
+def test_no_op_profiler_is_reachable_and_the_profile_says_why(build: Build) -> None:
+    session = _load(*build("fp32"))
+    profile = session.profile(session.prepare({"input": X[:1]}), 5)
+    assert profile.operators == () and profile.fields() == {"profile_reason": profile.reason}
+    assert profile.reason.startswith("ai_edge_litert ") and "--enable_op_profiling" in profile.reason
+
+
 @pytest.mark.filterwarnings("ignore:.*tf.lite.Interpreter is deprecated")
 def test_tensorflow_interpreter_is_the_fallback(build: Build, reference: np.ndarray,
                                                 monkeypatch: pytest.MonkeyPatch) -> None:

@@ -23,6 +23,7 @@ sys.path.insert(0, str(TESTS))
 from conftest import cli, matrix_text  # noqa: E402
 from convert_helper import convert_with, request_for  # noqa: E402
 from test_backends import CALIBRATION, X, _atol  # noqa: E402
+from test_profile import by_kind, profiled_shares  # noqa: E402
 
 import torch  # noqa: E402
 
@@ -32,7 +33,8 @@ from bench_matrix.strategy import StrategySpec  # noqa: E402
 from bench_matrix.sources import SourceModel  # noqa: E402
 from bench_matrix.tensors import TensorSpec  # noqa: E402
 from bench_matrix_backends._inductor import compiled_graphs  # noqa: E402
-from bench_matrix_backends.torch_compile import AotInductorBackend, TorchCompileBackend  # noqa: E402
+from bench_matrix_backends.torch_compile import AOT_KERNELS, AotInductorBackend, \
+    TorchCompileBackend  # noqa: E402
 
 JIT, AOT = TorchCompileBackend(), AotInductorBackend()
 BATCH = 8  # the throughput batch (max_batch) the artifacts are made for
@@ -179,6 +181,18 @@ def test_dynamic_batch_axis_serves_every_batch_with_the_threads_asked(jit, refer
         for rows in (slice(0, 1), slice(0, 5), slice(3, 6), slice(0, BATCH)):
             np.testing.assert_allclose(_predict(session, X[rows]), reference[rows], rtol=0,
                                        atol=_atol("fp32", reference))
+
+
+def test_compiled_profiles_add_up_to_their_calls_fused_kernels_as_other(jit, aot) -> None:
+    """torch.compile's fused kernels run in its compiled graph's call (CompiledFxGraph), AOTInductor's in the
+    time its package's call spends outside aten ops; convolutions stay aten ops (extern kernels) at fp32."""
+    profile, _ = profiled_shares(jit[2], {"input": X[:BATCH]})
+    assert {"CompiledFxGraph", "TorchDynamo Cache Lookup"} <= {op.op_type for op in profile.operators}
+    assert by_kind(profile)["conv"] == {"fp32"}
+    profile, _ = profiled_shares(AOT.load(aot[1], aot[2], "cpu", "fp32", 1), {"input": X[:BATCH]})
+    kernels = [op for op in profile.operators if op.op_type == AOT_KERNELS]
+    assert len(kernels) == 1 and kernels[0].kind == "other" and kernels[0].ms > 0
+    assert by_kind(profile)["conv"] == {"fp32"}
 
 
 # ---- AOTInductor -------------------------------------------------------------------------------------------
