@@ -15,13 +15,15 @@ PRECISIONS = ("fp32", "fp16", "bf16", "int8", "other")
 # "quant" (DynamicQuantizeMatMul is a MatMul, so is quantized::linear); reshape covers layout copies (Reorder,
 # Transpose, Concat). torch's ops: aten::addmm, aten::mm, aten::bmm, aten::linear and
 # mkldnn::_linear_pointwise are matmul ("::linear" and "_linear", not "linear": ONNX's DequantizeLinear is
-# quant, QLinearAdd other); aten::clamp_min is eager ReLU's work; aten::view and aten::_unsafe_view reshape
+# quant, QLinearAdd other); aten::clamp_min is eager ReLU's work, OpenVINO's Maximum (with 0) ReLU's on ARM;
+# aten::view and aten::_unsafe_view reshape
 KIND_WORDS = (("dataset", "other"), ("convert", "quant"), ("conv", "conv"),
               *((word, "matmul") for word in ("matmul", "gemm", "fullyconnected", "innerproduct", "addmm",
                                               "bmm", "::mm", "::linear", "_linear")),
               ("pool", "pool"), ("quant", "quant"),
               *((word, "activation") for word in ("relu", "sigmoid", "tanh", "elu", "clip", "clamp",
-                                                  "softmax", "swish", "mish", "hardsigmoid", "silu")),
+                                                  "softmax", "swish", "mish", "hardsigmoid", "silu",
+                                                  "maximum")),
               *((word, "reshape") for word in ("reshape", "reorder", "transpose", "flatten", "squeeze",
                                                "concat", "gather", "slice", "split", "copy", "pad", "view",
                                                "permute", "contiguous")))

@@ -95,8 +95,9 @@ def test_openvino_fp32_profile_has_its_convolution(tmp_path: Path) -> None:
 def test_kinds_and_what_is_no_result() -> None:
     assert [kind_of(t) for t in ("QLinearConv", "Convert", "DynamicQuantizeMatMul", "FullyConnected",
                                  "MaxPool", "Relu", "Reorder", "DequantizeLinear", "Add", "QLinearAdd",
-                                 "TensorSliceDataset")] == \
-        ["conv", "quant", "matmul", "matmul", "pool", "activation", "reshape", "quant"] + ["other"] * 3
+                                 "TensorSliceDataset", "Maximum")] == \
+        ["conv", "quant", "matmul", "matmul", "pool", "activation", "reshape", "quant"] + ["other"] * 3 + \
+        ["activation"]
     torch_ops = ("aten::addmm", "aten::mm", "quantized::linear_dynamic", "aten::linear",
                  "mkldnn::_convolution_pointwise", "quantized::conv2d_relu", "aten::clamp_min",
                  "aten::max_pool2d", "aten::quantize_per_tensor", "aten::_unsafe_view", "CompiledFxGraph",
