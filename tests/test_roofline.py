@@ -14,7 +14,7 @@ import pytest
 from rich.console import Console
 
 from bench_matrix.cell import Cell
-from bench_matrix.measure.peak import best_rate, measure, ort_kernels
+from bench_matrix.measure.peak import best_of, best_rate, measure, ort_kernels
 from bench_matrix.measure.work import onnx_work
 from bench_matrix.report.analysis.roofline import roofline
 from bench_matrix.report.analysis.summary import Row, summarize
@@ -86,14 +86,27 @@ def test_a_cpu_without_int8_or_bf16_instructions_gets_reasons_not_peaks() -> Non
     assert kernels["bf16"][0] == "the CPU has no bf16 instructions (AVX-512 BF16, AMX, ARM bf16)"
 
 
+def test_two_peaks_of_a_machine_keep_each_best_and_are_disturbed_only_where_both_were() -> None:
+    held = {"machine_flops": {"fp32": 5e10, "int8": 4e11}, "machine_bandwidth": 2e10, "machine_host": "h",
+            "machine_reasons": {"bf16": "none here"}, "machine_disturbed": "busy", "machine_measurements": 2}
+    found = {"machine_flops": {"fp32": 9e10, "int8": 3e11, "bf16": 1e11}, "machine_bandwidth": 1e10,
+             "machine_reasons": {}, "machine_disturbed": "busy too"}
+    best = best_of(held, found)
+    assert best["machine_flops"] == {"fp32": 9e10, "int8": 4e11, "bf16": 1e11}
+    assert best["machine_bandwidth"] == 2e10 and best["machine_reasons"] == {}
+    assert best["machine_disturbed"] == "busy too" and best["machine_measurements"] == 3
+    assert best_of(held, {**found, "machine_disturbed": None})["machine_disturbed"] is None
+
+
 def test_a_clock_that_does_not_move_gives_no_rate() -> None:
     with pytest.raises(ValueError, match="no rate"):
         best_rate(lambda: None, 1e9, 0.0, lambda: 0.0)
 
 
-def record(precision: str, p50: float | None = 1.0, profiled: bool = True, **others: Any) -> CellRecord:
+def record(precision: str, p50: float | None = 1.0, profiled: bool = True, strategy: str | None = None,
+           **others: Any) -> CellRecord:
     """An ok cell of model m; profiled: with a conv/gemm profile, the work and a peak."""
-    strategy = "none" if precision == "fp32" else "ptq_dynamic"
+    strategy = strategy or ("none" if precision == "fp32" else "ptq_dynamic")
     cell = Cell("m", "onnx", "onnxruntime", strategy, precision, "cpu")
     ops = [{"name": "c", "op_type": "Conv", "kind": "conv", "precision": "fp32", "ms": 0.6},
            {"name": "g", "op_type": "MatMulInteger", "kind": "matmul", "precision": precision, "ms": 0.3},
@@ -127,7 +140,9 @@ def test_the_roofline_bound_is_the_lower_of_the_ceiling_and_intensity_times_band
 
 def test_the_section_shows_the_short_form_and_the_plots_and_nothing_without_a_profile(tmp_path: Path) -> None:
     infos = {"m": {"framework": "onnx", "baseline_key": "m/onnxruntime/none/fp32/cpu", "task": "regression"}}
-    model = summarize([record("fp32"), record("int8", p50=0.5)], infos, {}).models[0]
+    slower = record("int8", p50=0.5, machine_flops={"fp32": 1e11, "int8": 8e11}, machine_bandwidth=1e10,
+                    machine_disturbed="busy")  # a second peak, lower: the cells are held to the best
+    model = summarize([record("fp32"), record("fp32", strategy="other"), slower], infos, {}).models[0]
     console = Console(file=io.StringIO(), width=250)
     print_terminal(model, console)
     text = console.file.getvalue()
@@ -135,7 +150,8 @@ def test_the_section_shows_the_short_form_and_the_plots_and_nothing_without_a_pr
     assert "50.0 (fp32)" in text and "25.0 (int8)" in text  # 1e11 of 2e11; 2e11 of 8e11
     assert "float in int8 %" in text and "conv fp32 %" not in text  # the short form: no column per kind
     assert "Work of one inference (its fp32 ONNX graph): 100 MFLOP, 1 MB" in text
-    assert "fp32 200 GFLOP/s, int8 800 GOP/s; stream 20 GB/s" in text
+    assert "the best of 2 measurements: fp32 200 GFLOP/s, int8 800 GOP/s; stream 20 GB/s" in text
+    assert "disturbed" not in text  # one of the two was quiet
     plots = profile_plots(model, tmp_path / "plots")
     assert [p.kind for p in plots] == ["profile", "roofline"] and all(p.path.stat().st_size for p in plots)
     bare = summarize([record("fp32", profiled=False)], infos, {}).models[0]

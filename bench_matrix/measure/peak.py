@@ -5,7 +5,7 @@ through OpenVINO (ONNX Runtime has no bf16 CPU kernel), each the fastest of its 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -32,10 +32,21 @@ class Peak:
                 "machine_flops": {name: round(value) for name, value in self.flops.items()},
                 "machine_bandwidth": round(self.bandwidth), "machine_reasons": dict(self.reasons)}
 
-    @classmethod
-    def from_fields(cls, fields: dict[str, Any]) -> Peak:
-        return cls(fields["machine_threads"], dict(fields["machine_flops"]), fields["machine_bandwidth"],
-                   dict(fields.get("machine_reasons") or {}))
+
+def best_of(held: Mapping[str, Any], found: Mapping[str, Any]) -> dict[str, Any]:
+    """Two peaks of one machine (`machine_*` fields) as one: each precision's and the bandwidth's higher of
+    the two (other work only ever slows a measurement), disturbed only where both were, measurements added."""
+    flops = dict(held["machine_flops"])
+    for name, value in found["machine_flops"].items():
+        flops[name] = max(flops.get(name, 0), value)
+    reasons = {**held.get("machine_reasons", {}), **found.get("machine_reasons", {})}
+    both_disturbed = held.get("machine_disturbed") and found.get("machine_disturbed")
+    count = held.get("machine_measurements", 1) + found.get("machine_measurements", 1)
+    return {**held, "machine_flops": flops,
+            "machine_bandwidth": max(held["machine_bandwidth"], found["machine_bandwidth"]),
+            "machine_reasons": {name: why for name, why in reasons.items() if name not in flops},
+            "machine_disturbed": found["machine_disturbed"] if both_disturbed else None,
+            "machine_measurements": count}
 
 
 def best_rate(call: Kernel, amount: float, seconds: float, clock: Callable[[], float]) -> float:

@@ -3,11 +3,13 @@ timed p50, its operational intensity, the bound the machine's peak puts on it an
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from bench_matrix.measure.peak import best_of
 from bench_matrix.report.analysis.summary import Row, number
 
 # the compute ceiling each precision is held to, in order of preference: a precision without its own measured
@@ -62,22 +64,20 @@ def machine_key(others: Mapping[str, Any]) -> tuple[Any, ...]:
 
 
 def best_peaks(rows: Sequence[Row]) -> dict[tuple[Any, ...], dict[str, Any]]:
-    """Per machine, the highest of its records' peaks, precision by precision (other work only ever slows a
-    measurement), with how many were measured and, where every one was disturbed, the last one's reason."""
+    """Per machine, the best of its records' peaks (measure.peak.best_of; records sharing one kept peak
+    count it once)."""
     found: dict[tuple[Any, ...], dict[str, Any]] = {}
+    seen: set[str] = set()
     for row in rows:
         others = row.record.metrics.others
-        measured = isinstance(others.get("machine_flops"), dict)
-        if not measured or number(others.get("machine_bandwidth")) is None:
+        peak = {key: value for key, value in others.items() if key.startswith("machine_")}
+        if not isinstance(peak.get("machine_flops"), dict) or number(peak.get("machine_bandwidth")) is None:
             continue
-        best = found.setdefault(machine_key(others), {**others, "machine_flops": {}, "machine_bandwidth": 0.0,
-                                                      "machine_measurements": 0})
-        for name, value in others["machine_flops"].items():
-            best["machine_flops"][name] = max(best["machine_flops"].get(name, 0.0), number(value) or 0.0)
-        best["machine_bandwidth"] = max(best["machine_bandwidth"], others["machine_bandwidth"])
-        best["machine_measurements"] += 1
-        if best.get("machine_disturbed") and not others.get("machine_disturbed"):
-            best["machine_disturbed"] = None  # one quiet measurement among them
+        if (text := json.dumps(peak, sort_keys=True)) in seen:
+            continue
+        seen.add(text)
+        key = machine_key(peak)
+        found[key] = best_of(found[key], peak) if key in found else peak
     return found
 
 
