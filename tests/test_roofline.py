@@ -16,7 +16,7 @@ from rich.console import Console
 from bench_matrix.cell import Cell
 from bench_matrix.measure.peak import best_of, best_rate, measure, ort_kernels
 from bench_matrix.measure.work import onnx_work
-from bench_matrix.report.analysis.roofline import roofline
+from bench_matrix.report.analysis.roofline import best_peaks, roofline
 from bench_matrix.report.analysis.summary import Row, summarize
 from bench_matrix.scenarios.profile.plots import profile_plots
 from bench_matrix.scenarios.profile.report import print_terminal
@@ -138,10 +138,21 @@ def test_the_roofline_bound_is_the_lower_of_the_ceiling_and_intensity_times_band
         assert roofline(row(broken)) is None
 
 
+def test_a_kept_peak_measured_again_counts_each_measurement_once() -> None:
+    first = record("fp32", machine_flops={"fp32": 1e11}, machine_disturbed="busy")
+    grown = record("fp32", strategy="x", machine_flops={"fp32": 1.5e11}, machine_measurements=2,
+                   machine_disturbed="busy")  # the first one measured again: its line, grown
+    other = record("fp32", strategy="y", machine_flops={"fp32": 1.2e11, "int8": 4e11},
+                   machine_measured_at="later")
+    peak = best_peaks([row(first), row(grown), row(other)])[("h", "a CPU", 1)]
+    assert peak["machine_measurements"] == 3 and peak["machine_flops"] == {"fp32": 1.5e11, "int8": 4e11}
+    assert peak["machine_disturbed"] is None  # the other line was quiet
+
+
 def test_the_section_shows_the_short_form_and_the_plots_and_nothing_without_a_profile(tmp_path: Path) -> None:
     infos = {"m": {"framework": "onnx", "baseline_key": "m/onnxruntime/none/fp32/cpu", "task": "regression"}}
     slower = record("int8", p50=0.5, machine_flops={"fp32": 1e11, "int8": 8e11}, machine_bandwidth=1e10,
-                    machine_disturbed="busy")  # a second peak, lower: the cells are held to the best
+                    machine_disturbed="busy", machine_measured_at="later")  # lower: held to the best
     model = summarize([record("fp32"), record("fp32", strategy="other"), slower], infos, {}).models[0]
     console = Console(file=io.StringIO(), width=250)
     print_terminal(model, console)

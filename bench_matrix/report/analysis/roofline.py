@@ -3,7 +3,6 @@ timed p50, its operational intensity, the bound the machine's peak puts on it an
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -64,21 +63,26 @@ def machine_key(others: Mapping[str, Any]) -> tuple[Any, ...]:
 
 
 def best_peaks(rows: Sequence[Row]) -> dict[tuple[Any, ...], dict[str, Any]]:
-    """Per machine, the best of its records' peaks (measure.peak.best_of; records sharing one kept peak
-    count it once)."""
-    found: dict[tuple[Any, ...], dict[str, Any]] = {}
-    seen: set[str] = set()
+    """Per machine, the best of its records' peaks (measure.peak.best_of). A kept peak measured again grows
+    by each measurement and keeps its first one's time: of one such line, the record with the most
+    measurements holds the others."""
+    lines: dict[tuple[Any, ...], dict[str, Any]] = {}
     for row in rows:
-        others = row.record.metrics.others
-        peak = {key: value for key, value in others.items() if key.startswith("machine_")}
+        peak = {k: v for k, v in row.record.metrics.others.items() if k.startswith("machine_")}
         if not isinstance(peak.get("machine_flops"), dict) or number(peak.get("machine_bandwidth")) is None:
             continue
-        if (text := json.dumps(peak, sort_keys=True)) in seen:
-            continue
-        seen.add(text)
+        line = (*machine_key(peak), peak.get("machine_measured_at"))
+        if _measurements(peak) >= _measurements(lines.get(line, {})):
+            lines[line] = peak
+    found: dict[tuple[Any, ...], dict[str, Any]] = {}
+    for peak in lines.values():
         key = machine_key(peak)
         found[key] = best_of(found[key], peak) if key in found else peak
     return found
+
+
+def _measurements(peak: Mapping[str, Any]) -> int:
+    return int(peak.get("machine_measurements", 1)) if peak else 0
 
 
 def roofline(row: Row, among: Sequence[Row] = ()) -> Roofline | None:
