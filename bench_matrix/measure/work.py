@@ -17,6 +17,7 @@ MATMUL = ("MatMul", "MatMulInteger", "QLinearMatMul")
 GEMM = ("Gemm",)
 QUANTISED_INPUTS = ("QLinearConv", "QLinearMatMul")  # (x, x_scale, x_zero, w, ...)
 TRANSPOSED = ("ConvTranspose",)
+Shape = tuple[tuple[int, ...], int]  # a tensor's dimensions and its element's size in bytes
 
 
 @dataclass(frozen=True)
@@ -71,10 +72,8 @@ def _inferred(model: onnx.ModelProto, shapes: Sequence[tuple[int, ...]]) -> onnx
 
 def count(model: onnx.ModelProto) -> Work:
     """FLOPs and bytes of a graph whose values have static shapes (onnx_work infers them)."""
-    from onnx import numpy_helper
-
     graph = model.graph
-    weights = {init.name: numpy_helper.to_array(init) for init in graph.initializer}
+    weights = {init.name: _tensor_shape(init) for init in graph.initializer}  # by dims: no data is read
     shapes = _shapes(graph, weights)
     by_op: dict[str, int] = {}
     for node in graph.node:
@@ -89,10 +88,10 @@ def count(model: onnx.ModelProto) -> Work:
         return Work(reason=f"the shape of {unknown[0]} is not known")
     activations = sum(_size(shapes[name]) for name in dict.fromkeys(moved) if name and name not in weights)
     constants = sum(_constant_bytes(node) for node in graph.node if node.op_type == "Constant")
-    return Work(sum(by_op.values()), sum(w.nbytes for w in weights.values()) + constants, activations, by_op)
+    return Work(sum(by_op.values()), sum(map(_size, weights.values())) + constants, activations, by_op)
 
 
-def node_flops(node: onnx.NodeProto, shapes: dict[str, tuple[tuple[int, ...], int]]) -> int | None:
+def node_flops(node: onnx.NodeProto, shapes: dict[str, Shape]) -> int | None:
     """2 × the multiply-adds of a Conv, ConvTranspose, Gemm or MatMul (float or integer form); 0 for any
     other op; None where a shape it needs is not known."""
     if node.op_type not in CONV + MATMUL + GEMM + TRANSPOSED:
@@ -112,26 +111,31 @@ def node_flops(node: onnx.NodeProto, shapes: dict[str, tuple[tuple[int, ...], in
     return 2 * math.prod(y) * x[-1]  # MatMul: every output element a K-long dot product
 
 
-def _shapes(graph: onnx.GraphProto, weights: dict[str, Any]) -> dict[str, tuple[tuple[int, ...], int]]:
-    """Each value's static shape and element size in bytes (values with an unknown dimension left out)."""
-    from onnx import helper
-
-    found = {name: (tuple(array.shape), array.itemsize) for name, array in weights.items()}
+def _shapes(graph: onnx.GraphProto, weights: dict[str, Shape]) -> dict[str, Shape]:
+    """Each value's static shape and element size (values with an unknown dimension left out)."""
+    found = dict(weights)
     for value in [*graph.input, *graph.value_info, *graph.output]:
         tensor = value.type.tensor_type
         dims = [d.dim_value if d.HasField("dim_value") else None for d in tensor.shape.dim]
         if tensor.HasField("shape") and None not in dims and tensor.elem_type:
-            size = helper.tensor_dtype_to_np_dtype(tensor.elem_type).itemsize
-            found.setdefault(value.name, (tuple(dims), size))
+            found.setdefault(value.name, (tuple(dims), _itemsize(tensor.elem_type)))
     return found
 
 
-def _size(shape: tuple[tuple[int, ...], int]) -> int:
+def _tensor_shape(tensor: onnx.TensorProto) -> Shape:
+    return tuple(tensor.dims), _itemsize(tensor.data_type)
+
+
+def _itemsize(elem_type: int) -> int:
+    from onnx import helper
+
+    return helper.tensor_dtype_to_np_dtype(elem_type).itemsize
+
+
+def _size(shape: Shape) -> int:
     return math.prod(shape[0]) * shape[1]
 
 
 def _constant_bytes(node: onnx.NodeProto) -> int:
-    from onnx import numpy_helper
-
     value = next((a.t for a in node.attribute if a.name == "value" and a.HasField("t")), None)
-    return numpy_helper.to_array(value).nbytes if value is not None else 0
+    return _size(_tensor_shape(value)) if value is not None else 0
