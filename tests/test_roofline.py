@@ -133,6 +133,9 @@ def test_the_roofline_bound_is_the_lower_of_the_ceiling_and_intensity_times_band
     assert starved is not None and starved.memory_bound and starved.bound == 2e11 and starved.share == 0.5
     no_int8 = roofline(row(record("int8", machine_flops={"fp32": 2e11})))
     assert no_int8 is not None and no_int8.ceiling_of == "fp32" and no_int8.bound == 2e11
+    uncounted = record("fp32", p50=2.0, work_flops=None, work_bytes=None, work_reason="pytorch: counts none")
+    assert roofline(row(uncounted)) is None  # its model's work is its own cell's or another cell's
+    assert roofline(row(uncounted), [row(record("int8"))]) == fp32
     for broken in (record("fp32", p50=None), record("fp32", p50=math.nan), record("fp32", work_bytes=0),
                    record("fp32", machine_flops={}), record("fp32", profiled=False)):
         assert roofline(row(broken)) is None

@@ -85,12 +85,23 @@ def _measurements(peak: Mapping[str, Any]) -> int:
     return int(peak.get("machine_measurements", 1)) if peak else 0
 
 
+def model_work(rows: Sequence[Row]) -> dict[str, Any]:
+    """The work of one inference of the rows' model: the `work_*` fields of the first record that has them
+    (every cell of a model has the same: its fp32 ONNX graph's); empty where none has."""
+    for row in rows:
+        others = row.record.metrics.others
+        if number(others.get("work_flops")) is not None and number(others.get("work_bytes")) is not None:
+            return {k: v for k, v in others.items() if k.startswith("work_") and k != "work_reason"}
+    return {}
+
+
 def roofline(row: Row, among: Sequence[Row] = ()) -> Roofline | None:
-    """The cell on the roofline, held to the best peak of its machine among its own and `among`'s records;
-    None where its record lacks the work, the peak or a p50 (batch 1), or a figure is not a finite positive
-    number."""
+    """The cell on the roofline: its model's work (its own record's, else that of `among`'s, the same model)
+    held to the best peak of its machine among its own and `among`'s records; None where the work, the peak
+    or a p50 (batch 1) is missing, or a figure is not a finite positive number."""
     others, p50 = row.record.metrics.others, number(row.record.metrics.latency.p50)
-    flops, moved = number(others.get("work_flops")), number(others.get("work_bytes"))
+    work = model_work([row, *among])
+    flops, moved = number(work.get("work_flops")), number(work.get("work_bytes"))
     peak = best_peaks([row, *among]).get(machine_key(others), {})
     bandwidth, peaks = number(peak.get("machine_bandwidth")), peak.get("machine_flops")
     found = ceiling(row.record.cell.precision, peaks) if isinstance(peaks, dict) else None

@@ -9,7 +9,7 @@ from collections.abc import Callable
 from typing import Any
 
 from bench_matrix.op_profile import KINDS, PRECISIONS
-from bench_matrix.report.analysis.roofline import best_peaks, roofline
+from bench_matrix.report.analysis.roofline import best_peaks, model_work, roofline
 from bench_matrix.report.analysis.summary import ModelSummary, Row, number
 from bench_matrix.report.render.columns import DASH, Column, fixed, sig
 from bench_matrix.report.render.html_parts import esc, table
@@ -120,17 +120,16 @@ def short_columns(rows: list[Row]) -> list[Column]:
 
 
 def machine_lines(rows: list[Row]) -> list[str]:
-    """The work of an inference and each peak the rows were held to, one line each (none where absent)."""
-    lines = [work_line(row.record.metrics.others) for row in rows
-             if isinstance(row.record.metrics.others.get("work_flops"), int)
-             and number(row.record.metrics.others.get("work_bytes"))]
-    return list(dict.fromkeys([*lines, *(peak_line(peak) for peak in best_peaks(rows).values())]))
+    """The work of the model's inference and each machine's peak the rows were held to, a line each (none
+    where absent)."""
+    work = model_work(rows)
+    return [*([work_line(work)] if work else []), *(peak_line(peak) for peak in best_peaks(rows).values())]
 
 
-def work_line(others: dict[str, Any]) -> str:
+def work_line(work: dict[str, Any]) -> str:
     """'Work of one inference (...): 51.2 MFLOP, 1.2 MB moved at least (weights 1.0 MB), 42 FLOP/byte'."""
-    flops, moved = others["work_flops"], others["work_bytes"]
-    weights = others.get("work_weight_bytes", 0) / 1e6
+    flops, moved = work["work_flops"], work["work_bytes"]
+    weights = work.get("work_weight_bytes", 0) / 1e6
     return (f"Work of one inference (its fp32 ONNX graph): {flops / 1e6:.4g} MFLOP, {moved / 1e6:.4g} MB "
             f"moved at least (weights {weights:.4g} MB), {flops / moved:.3g} FLOP/byte")
 
@@ -158,7 +157,7 @@ def reasons(model: ModelSummary) -> list[str]:
         others = row.record.metrics.others
         for key, what in (("profile_reason", "Not profiled"), ("work_reason", "No work counted"),
                           ("machine_reason", "No peak")):
-            if isinstance(others.get(key), str):
+            if isinstance(others.get(key), str) and not (key == "work_reason" and model_work(rows)):
                 found.append(f"{what}: {row.record.cell.label}: {others[key]}")
         placed = roofline(row, rows)
         if placed is not None and placed.share > 1:
