@@ -136,6 +136,9 @@ def test_the_roofline_bound_is_the_lower_of_the_ceiling_and_intensity_times_band
     uncounted = record("fp32", p50=2.0, work_flops=None, work_bytes=None, work_reason="pytorch: counts none")
     assert roofline(row(uncounted)) is None  # its model's work is its own cell's or another cell's
     assert roofline(row(uncounted), [row(record("int8"))]) == fp32
+    on_gpu = record("fp32")
+    on_gpu.cell = Cell("m", "onnx", "onnxruntime", "none", "fp32", "cuda")
+    assert roofline(row(on_gpu)) is None
     for broken in (record("fp32", p50=None), record("fp32", p50=math.nan), record("fp32", work_bytes=0),
                    record("fp32", machine_flops={}), record("fp32", profiled=False)):
         assert roofline(row(broken)) is None

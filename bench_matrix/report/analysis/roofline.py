@@ -100,6 +100,8 @@ def roofline(row: Row, among: Sequence[Row] = ()) -> Roofline | None:
     held to the best peak of its machine among its own and `among`'s records; None where the work, the peak
     or a p50 (batch 1) is missing, or a figure is not a finite positive number."""
     others, p50 = row.record.metrics.others, number(row.record.metrics.latency.p50)
+    if row.record.cell.target != "cpu":  # the peak is the CPU's
+        return None
     work = model_work([row, *among])
     flops, moved = number(work.get("work_flops")), number(work.get("work_bytes"))
     peak = best_peaks([row, *among]).get(machine_key(others), {})

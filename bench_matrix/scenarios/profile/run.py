@@ -28,5 +28,6 @@ def run_profile(loaded: Loaded, plan: ProfilePlan) -> Outcome:
         fields["profile_reason"] = f"{loaded.backend.name}: {fields['profile_reason']}"
         return Outcome(fields)
     meta = job.converted.manifest.get("meta") or {}
-    return Outcome({**fields, **work_fields(loaded.backend.name, meta),
-                    **peak_fields(job.workspace, job.settings.threads)})
+    peak = peak_fields(job.workspace, job.settings.threads) if job.cell.target == "cpu" else {
+        "machine_reason": f"the peak measured is the CPU's; a cell on {job.cell.target} is not held to it"}
+    return Outcome({**fields, **work_fields(loaded.backend.name, meta), **peak})
