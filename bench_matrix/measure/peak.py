@@ -11,7 +11,9 @@ from typing import Any
 
 import numpy as np
 
-GEMM_N = 1024  # an N×N by N×N MatMul: 2.1 GFLOP a call, compute bound on any CPU
+# an N×N by N×N MatMul: 0.27 GFLOP a call, in cache and compute bound; calls this short are the likeliest to
+# run uninterrupted on a busy machine (our 2-core VM under load: 108 GFLOP/s at 512, 51 at 1024)
+GEMM_N = 512
 STREAM_MIB = 128  # the Add's input: far beyond any CPU's caches
 SECONDS = 0.6  # each kernel's time, at least 3 calls
 Kernel = Callable[[], Any]
