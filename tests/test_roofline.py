@@ -16,7 +16,7 @@ from rich.console import Console
 from bench_matrix.cell import Cell
 from bench_matrix.measure.peak import best_of, best_rate, measure, ort_kernels
 from bench_matrix.measure.work import onnx_work
-from bench_matrix.report.analysis.roofline import best_peaks, roofline
+from bench_matrix.report.analysis.roofline import best_peaks, model_work, roofline
 from bench_matrix.report.analysis.summary import Row, summarize
 from bench_matrix.scenarios.profile.plots import profile_plots
 from bench_matrix.scenarios.profile.report import print_terminal
@@ -139,6 +139,7 @@ def test_the_roofline_bound_is_the_lower_of_the_ceiling_and_intensity_times_band
     on_gpu = record("fp32")
     on_gpu.cell = Cell("m", "onnx", "onnxruntime", "none", "fp32", "cuda")
     assert roofline(row(on_gpu)) is None
+    assert model_work([row(record("fp32", work_bytes=0))]) == {}  # never a division by zero
     for broken in (record("fp32", p50=None), record("fp32", p50=math.nan), record("fp32", work_bytes=0),
                    record("fp32", machine_flops={}), record("fp32", profiled=False)):
         assert roofline(row(broken)) is None

@@ -90,7 +90,8 @@ def model_work(rows: Sequence[Row]) -> dict[str, Any]:
     (every cell of a model has the same: its fp32 ONNX graph's); empty where none has."""
     for row in rows:
         others = row.record.metrics.others
-        if number(others.get("work_flops")) is not None and number(others.get("work_bytes")) is not None:
+        flops, moved = number(others.get("work_flops")), number(others.get("work_bytes"))
+        if flops is not None and moved and math.isfinite(flops) and math.isfinite(moved):
             return {k: v for k, v in others.items() if k.startswith("work_") and k != "work_reason"}
     return {}
 
