@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from bench_matrix.plugin import QAT_KINDS, Backend, ConvertRequest, Inputs, Profile, Session, StrategySpec, \
-    Support, count, installed_versions, resize
+    Support, count, installed_versions, onnx_work, resize
 
 from ._common import CALIBRATION_BATCH, batches, calibration_data, static_options_reason
 from ._onnx_export import fp32_model, graph_feeds, opset
@@ -41,7 +41,9 @@ class OnnxRuntimeBackend(Backend):
     """Exports PyTorch and Keras models to ONNX (or takes ONNX files as given) and runs them with ONNX Runtime."""
 
     name = "onnxruntime"
-    revision = 3  # 2: the quantisation pre-pass falls back where it fails; 3: it runs in a relative scratch folder
+    # 2: the quantisation pre-pass falls back where it fails; 3: it runs in a relative scratch folder; 4: the
+    # manifest counts the fp32 graph's work
+    revision = 4
     description = ("ONNX Runtime: CPU, CUDA and TensorRT providers; fp16 conversion, int8 QDQ quantisation (CPU) "
                    "and TensorRT int8 from a calibration table")
     supports = (Support(FRAMEWORKS, ("none",), ("fp32", "fp16"), ("cpu", "cuda", "tensorrt")),
@@ -77,6 +79,7 @@ class OnnxRuntimeBackend(Backend):
         with tempfile.TemporaryDirectory(prefix="bench-matrix-ort-", dir=request.scratch_dir) as tmp:
             model = fp32_model(request, Path(tmp))
             feeds, batch = graph_feeds(model, request.source)
+            work = onnx_work(model, request.source.inputs).to_json()  # the fp32 graph's: every mode the same
             quantisation = None
             if request.target == "tensorrt":  # TensorRT builds its fp16 and int8 engines from the fp32 model
                 onnx.save(model, str(out))
@@ -97,7 +100,8 @@ class OnnxRuntimeBackend(Backend):
             else:
                 onnx.save(model, str(out))
         return {"file": FILE, "inputs": feeds, "opset": opset(onnx.load(str(out), load_external_data=False)),
-                "strategy": step.kind, "quantization": quantisation, **({"tensorrt": engines} if engines else {})}
+                "strategy": step.kind, "quantization": quantisation, "work": work,
+                **({"tensorrt": engines} if engines else {})}
 
     def load(self, artifact_dir: Path, meta: dict[str, Any], target: str, precision: str,
              threads: int) -> Session:

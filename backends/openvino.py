@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 
 from bench_matrix.plugin import Backend, ConvertRequest, Inputs, Profile, Session, StrategySpec, Support, \
-    installed_versions
+    installed_versions, onnx_work
 
 from ._common import static_options_reason
 from ._nncf import METHODS, quantise
@@ -37,6 +37,7 @@ class OpenVinoBackend(Backend):
     runs it compiled for the target's device and each batch's shapes, with synchronous infer requests."""
 
     name = "openvino"
+    revision = 2  # 2: the manifest counts the fp32 graph's work
     description = ("OpenVINO on the CPU, Intel GPU and Intel NPU: fp32 (forced), bf16 and fp16 where the "
                    "device computes them, int8 by NNCF post-training quantisation")
     supports = (Support(FRAMEWORKS, ("none",), ("fp32", "fp16", "bf16"), TARGETS),
@@ -75,14 +76,14 @@ class OpenVinoBackend(Backend):
         ov = openvino()
         quantisation = None
         with tempfile.TemporaryDirectory(prefix="bench-matrix-ov-", dir=request.scratch_dir) as tmp:
-            model, feeds, batch = _fp32_model(request, Path(tmp))
+            model, feeds, batch, work = _fp32_model(request, Path(tmp))
             if step.kind == "ptq_static":
                 model, quantisation = quantise(model, request, feeds, batch)
             # Saved, never kept: a converted model may share its weights' memory with what it was made from.
             # fp32 weights stay fp32 (save_model halves them to fp16 by default); fp16 cells get fp16 weights.
             ov.save_model(model, str(request.out_dir / FILE), compress_to_fp16=request.precision == "fp16")
         return {"file": FILE, "inputs": feeds, "batch": batch, "export": EXPORTS[request.source.framework],
-                "strategy": step.kind, "weights": WEIGHTS.get(request.precision, "float32"),
+                "strategy": step.kind, "weights": WEIGHTS.get(request.precision, "float32"), "work": work,
                 "quantization": quantisation, "options": {**OPTION_DEFAULTS, **request.options}}
 
     def load(self, artifact_dir: Path, meta: dict[str, Any], target: str, precision: str,
@@ -99,16 +100,18 @@ class OpenVinoBackend(Backend):
         return OpenVinoSession(compiler, meta["inputs"])
 
 
-def _fp32_model(request: ConvertRequest, tmp: Path) -> tuple["ov.Model", dict[str, str], int | None]:
+def _fp32_model(request: ConvertRequest, tmp: Path) -> tuple["ov.Model", dict[str, str], int | None, dict]:
     """The source's fp32 ONNX model (exported once per source into the shared directory), read by OpenVINO's
-    ONNX frontend from a file; with the graph input each source input feeds and the graph's fixed batch."""
+    ONNX frontend from a file; with the graph input each source input feeds, the graph's fixed batch and the
+    ONNX graph's work (the same as onnxruntime's cells count)."""
     import onnx
 
     exported = fp32_model(request, tmp)
     feeds, batch = graph_feeds(exported, request.source)
     path = tmp / "fp32.onnx"
     onnx.save(exported, str(path))
-    return openvino().convert_model(str(path)), feeds, batch
+    work = onnx_work(exported, request.source.inputs).to_json()
+    return openvino().convert_model(str(path)), feeds, batch, work
 
 
 class Compiler:

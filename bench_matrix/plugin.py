@@ -3,6 +3,7 @@
 from bench_matrix.backend import DEVICES, Backend, ConvertRequest, Session, Support
 from bench_matrix.hardware import cuda_mismatch_reason, no_gpu_reason, precision_reason
 from bench_matrix.measure.env import installed_versions
+from bench_matrix.measure.work import onnx_work
 from bench_matrix.op_profile import KINDS, PRECISIONS, OperatorTime, Profile, kind_of
 from bench_matrix.phases import Epochs
 from bench_matrix.sources import ModelFileError, SourceModel
@@ -22,6 +23,8 @@ __all__ = [
     "Backend", "ConvertRequest", "DEVICES", "QAT_KINDS", "Session", "StrategySpec", "Support",
     # profiles (Session.profile)
     "KINDS", "OperatorTime", "PRECISIONS", "Profile", "kind_of",
+    # the work of an inference (a conversion's `work`)
+    "onnx_work",
     # trainers
     "Epochs", "FineTuneRequest", "FineTuned", "Trainer", "epoch_phases", "training_arrays", "weight_stats",
     # source models

@@ -88,6 +88,10 @@ class Workspace:
         """The parameter count of a source model."""
         return self.root / "cache" / "params" / f"{fingerprint}.json"
 
+    def peak(self, fingerprint: str) -> Path:
+        """The machine's peak measured at one host and thread count (measure/peak.py)."""
+        return self.root / "cache" / "peaks" / f"{fingerprint}.json"
+
     def automatic(self, stem: str, fingerprint: str) -> Path:
         """The automatic matrix `run MODEL_FILE` writes and runs, by its model's name and its digest."""
         return self.root / "auto" / f"{stem}-{fingerprint}.yaml"

@@ -31,22 +31,11 @@ TORCH_SHARE, TRIES, CALLS = (0.5, 1.3), 3, 20
 
 
 def conv_gemm(folder: Path) -> Path:
-    """An ONNX model (N,3,16,16) -> Conv 3x3 -> Relu -> Reshape -> Gemm -> (N,4)."""
+    """tiny_models.conv_gemm saved as fp32.onnx in `folder`."""
     import onnx
-    from onnx import TensorProto, helper, numpy_helper
 
-    rng = np.random.default_rng(0)
-    weights = [numpy_helper.from_array(rng.standard_normal(shape).astype(np.float32), name)
-               for name, shape in (("CW", (8, 3, 3, 3)), ("CB", (8,)), ("GW", (2048, 4)), ("GB", (4,)))]
-    weights.append(numpy_helper.from_array(np.array([-1, 2048], np.int64), "S"))
-    nodes = [helper.make_node("Conv", ["X", "CW", "CB"], ["C"], pads=[1, 1, 1, 1]),
-             helper.make_node("Relu", ["C"], ["R"]), helper.make_node("Reshape", ["R", "S"], ["F"]),
-             helper.make_node("Gemm", ["F", "GW", "GB"], ["Y"])]
-    graph = helper.make_graph(nodes, "conv_gemm",
-                              [helper.make_tensor_value_info("X", TensorProto.FLOAT, ["N", 3, 16, 16])],
-                              [helper.make_tensor_value_info("Y", TensorProto.FLOAT, ["N", 4])], weights)
     path = folder / "fp32.onnx"
-    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8), str(path))
+    onnx.save(tiny_models.conv_gemm(), str(path))
     return path
 
 
@@ -133,14 +122,19 @@ def test_a_run_stores_the_profile_and_the_report_shows_it(profiled: tuple[Path, 
     assert ort["profile_calls"] == 5 and {op["op_type"] for op in ort["profile_operators"]} >= {"MatMul"}
     assert math.isclose(sum(op["ms"] for op in ort["profile_operators"]), ort["profile_ms"], rel_tol=1e-4)
     assert records["slow_ort"]["profile_reason"].startswith("slow_ort: no profiler hook")
-    assert "profile_operators" not in records["slow_ort"]
+    assert "profile_operators" not in records["slow_ort"] and "machine_flops" not in records["slow_ort"]
+    assert ort["work_flops"] > 0 and ort["work_bytes"] > ort["work_weight_bytes"] > 0  # tiny.onnx's MatMuls
+    assert ort["machine_threads"] == 1 and ort["machine_flops"]["fp32"] > 0 and ort["machine_bandwidth"] > 0
     out = cli(project, "report", "--format", "md", "--out", str(project / "pages"), env=env)
     page = (project / "pages" / "tiny.md").read_text()
-    assert "## Where the time goes" in page and "| onnxruntime none fp32 |" in page
+    assert "## Where the time goes" in page and "| onnxruntime none fp32 |" in page and "Roofline %" in page
     assert "Not profiled: slow_ort none fp32: slow_ort: no profiler hook" in page
+    assert {p.name for p in (project / "pages" / "plots").glob("*-tiny.png")} >= {"profile-tiny.png",
+                                                                                 "roofline-tiny.png"}
     out = cli(project, "report", "--format", "md", "--backend", "slow_ort", "--out", str(project / "slow"),
               env=env)
     assert out.returncode == 0 and "Where the time goes" not in (project / "slow" / "tiny.md").read_text()
+    assert not [*(project / "slow").rglob("profile-*")] and not [*(project / "slow").rglob("roofline-*")]
 
 
 def test_a_bad_profile_value_exits_2_naming_file_line_and_key(onnx_project: Path) -> None:

@@ -6,6 +6,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     import numpy as np
+    import onnx
     from torch import nn
 
 INPUT_SHAPE = (3, 16, 16)
@@ -140,3 +141,21 @@ def positions() -> "nn.Module":
 
     torch.manual_seed(0)
     return Positions().eval()
+
+
+def conv_gemm() -> "onnx.ModelProto":
+    """An ONNX model (N,3,16,16) -> Conv 3x3 (8 channels, padded) -> Relu -> Reshape -> Gemm -> (N,4)."""
+    import numpy as np
+    from onnx import TensorProto, helper, numpy_helper
+
+    rng = np.random.default_rng(0)
+    weights = [numpy_helper.from_array(rng.standard_normal(shape).astype(np.float32), name)
+               for name, shape in (("CW", (8, 3, 3, 3)), ("CB", (8,)), ("GW", (2048, 4)), ("GB", (4,)))]
+    weights.append(numpy_helper.from_array(np.array([-1, 2048], np.int64), "S"))
+    nodes = [helper.make_node("Conv", ["X", "CW", "CB"], ["C"], pads=[1, 1, 1, 1]),
+             helper.make_node("Relu", ["C"], ["R"]), helper.make_node("Reshape", ["R", "S"], ["F"]),
+             helper.make_node("Gemm", ["F", "GW", "GB"], ["Y"])]
+    graph = helper.make_graph(nodes, "conv_gemm",
+                              [helper.make_tensor_value_info("X", TensorProto.FLOAT, ["N", 3, 16, 16])],
+                              [helper.make_tensor_value_info("Y", TensorProto.FLOAT, ["N", 4])], weights)
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)

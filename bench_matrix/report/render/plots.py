@@ -89,7 +89,7 @@ def pareto_plot(model: ModelSummary, path: Path) -> Plot | None:
     found, left_out = points(model)
     if len(found) < 2:
         return None
-    _save(pareto_figure(model, found), path)
+    save_figure(pareto_figure(model, found), path)
     name, higher = accuracy_metric(model)
     optimal = ", ".join(_name(model, p.record) for p in found if p.optimal)
     alt = (f"Pareto chart of {model.name}: p50 latency in ms against {AXIS_NAMES.get(name, name)} "
@@ -110,7 +110,7 @@ def latency_plot(model: ModelSummary, samples: Mapping[int, np.ndarray], path: P
     if not timed:
         return None
     timed.sort(key=lambda item: (float(np.median(item[1])), item[0].cell.key))
-    _save(latency_figure(model, timed), path)
+    save_figure(latency_figure(model, timed), path)
     (fast, fast_s), (slow, slow_s) = timed[0], timed[-1]
     alt = (f"Latency distribution of {len(timed)} cells of {model.name} at batch 1 from their raw samples "
            f"(box: 25th-75th percentile, line: median, whiskers: 1st-99th percentile), fastest median first: "
@@ -127,7 +127,7 @@ def pareto_figure(model: ModelSummary, found: Sequence[Point]) -> Any:
     """Latency (x) against accuracy (y), area by size, colour by backend, marker by precision; numbered points
     listed in a key below the axes, the legend beside them."""
     style = model_style(model)
-    figure = _figure(6.0)
+    figure = new_figure(6.0)
     legend = _pareto_legend(figure, found, style)
     extent = legend.get_window_extent(figure.canvas.get_renderer())
     width = max(WIDTH_IN, LEFT + AXES_W + LEGEND_GAP + extent.width / DPI + 0.1)
@@ -283,7 +283,7 @@ def latency_figure(model: ModelSummary, timed: Sequence[tuple[CellRecord, np.nda
     labels = [_plain(_name(model, r)) + (APPROXIMATE if _approximate(r) else "") for r, _ in timed]
     counts = [f"n = {len(s):,}" for _, s in timed]
     height = max(2.4, LATENCY_TOP + len(timed) * ROW_IN + LATENCY_BOTTOM)
-    figure = _figure(height)
+    figure = new_figure(height)
     left = max(_text_size(figure, t, FONT, False)[0] for t in labels) / DPI + 0.3
     right = max(_text_size(figure, t, FONT, False)[0] for t in counts) / DPI + 0.3
     rows_h = height - LATENCY_TOP - LATENCY_BOTTOM
@@ -372,7 +372,7 @@ def _text_size(figure: Any, text: str, size: float, bold: bool) -> tuple[float, 
     return extent.width, extent.height
 
 
-def _figure(height_in: float) -> Any:
+def new_figure(height_in: float) -> Any:
     """A figure on an Agg canvas (no pyplot, no display)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -382,5 +382,5 @@ def _figure(height_in: float) -> Any:
     return figure
 
 
-def _save(figure: Any, path: Path) -> None:
+def save_figure(figure: Any, path: Path) -> None:
     figure.savefig(path, dpi=DPI, metadata={"Software": None})

@@ -44,7 +44,7 @@ class Profiling(Scenario):
     name = "profile"
     title = "profile"
     schema = SCHEMA
-    section = "bench_matrix.scenarios.profile.report:SECTION"
+    section = "bench_matrix.scenarios.profile.plots:SECTION"
 
     def read(self, data: dict[str, Any], loading: Loading) -> ProfileSpec:
         """The typed section; a selector naming no axis value goes to `loading.report`."""
