@@ -20,7 +20,7 @@ from bench_matrix.matrix.extended import axis_values, installed_schema
 from bench_matrix.matrix.require import declared
 from bench_matrix.matrix.retired import current
 from bench_matrix.matrix.spec import (DEFAULT_LAYOUT, MODEL_SUFFIXES, DatasetSpec, Matrix, ModelSpec,
-                                      Selector, Settings, TrainingSpec, file_kind)
+                                      Selection, Selector, Settings, TrainingSpec, file_kind)
 from bench_matrix.matrix.validate import StrictValidator, describe
 from bench_matrix.matrix.yamlpos import Located, load_with_lines, suggest
 from bench_matrix.registry import scenarios
@@ -42,6 +42,13 @@ class Loading:
     known: dict[str, list[str] | None]  # cell key -> its known values (None: any)
     report: Located
 
+    def selection(self, at: tuple, data: dict[str, Any]) -> Selection:
+        """A section's `cells` ('all' or partial cells) and `exclude`, at key path `at`, each checked."""
+        cells = data.get("cells", "all")
+        chosen = None if cells == "all" else tuple(selector(at + ("cells", i), s, self.known, self.report)
+                                                   for i, s in enumerate(cells))
+        return Selection(chosen, tuple(selector(at + ("exclude", i), s, self.known, self.report)
+                                       for i, s in enumerate(data.get("exclude", []))))
 
 
 def load_matrix(path: str | Path, backends: list[str] | None = None) -> Matrix:

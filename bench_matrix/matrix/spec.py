@@ -143,6 +143,19 @@ class Selector:
 
 
 @dataclass(frozen=True)
+class Selection:
+    """The cells a scenario's section selects: those among `cells` (None: every cell) not in `exclude`."""
+
+    cells: tuple[Selector, ...] | None = None
+    exclude: tuple[Selector, ...] = ()
+
+    def selects(self, cell: dict[str, str]) -> bool:
+        """True when the cell (as a dict) is among `cells` and not excluded."""
+        chosen = self.cells is None or any(s.matches(cell) for s in self.cells)
+        return chosen and not any(s.matches(cell) for s in self.exclude)
+
+
+@dataclass(frozen=True)
 class Matrix:
     """A loaded, validated matrix file."""
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from bench_matrix.cell import Planned
-from bench_matrix.matrix.load import Loading, selector
+from bench_matrix.matrix.load import Loading
 from bench_matrix.scenarios.base import Scenario
 from bench_matrix.scenarios.profile.spec import SCHEMA, ProfileSpec
 
@@ -48,14 +48,8 @@ class Profiling(Scenario):
 
     def read(self, data: dict[str, Any], loading: Loading) -> ProfileSpec:
         """The typed section; a selector naming no axis value goes to `loading.report`."""
-        cells = data.get("cells", "all")
-        known, report = loading.known, loading.report
-        chosen = None if cells == "all" else tuple(selector(AT + ("cells", i), s, known, report)
-                                                   for i, s in enumerate(cells))
-        exclude = tuple(selector(AT + ("exclude", i), s, known, report)
-                        for i, s in enumerate(data.get("exclude", [])))
-        return ProfileSpec(data.get("calls", ProfileSpec.calls), chosen, exclude)
+        return ProfileSpec(data.get("calls", ProfileSpec.calls), loading.selection(AT, data))
 
     def plan(self, section: ProfileSpec, matrix: Matrix, cell: Cell) -> ProfilePlan | None:
         """The cell's profile when the section selects it."""
-        return ProfilePlan(section) if section.selects(cell.as_dict()) else None
+        return ProfilePlan(section) if section.selection.selects(cell.as_dict()) else None

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from bench_matrix.matrix.schema import SELECTION
-from bench_matrix.matrix.spec import Selector
+from bench_matrix.matrix.spec import Selection
 
 MAX_CALLS = 10_000
 
@@ -17,13 +17,7 @@ class ProfileSpec:
     rounds, and how many calls are profiled."""
 
     calls: int = 20
-    cells: tuple[Selector, ...] | None = None  # None: every cell
-    exclude: tuple[Selector, ...] = ()
-
-    def selects(self, cell: dict[str, str]) -> bool:
-        """True when the cell (as a dict) is among `cells` and not excluded."""
-        chosen = self.cells is None or any(s.matches(cell) for s in self.cells)
-        return chosen and not any(s.matches(cell) for s in self.exclude)
+    selection: Selection = Selection()
 
 
 SCHEMA: dict[str, Any] = {

@@ -53,7 +53,7 @@ class Stream(Scenario):
 
     def plan(self, section: StreamSpec, matrix: Matrix, cell: Cell) -> StreamPlan | None:
         """The cell's stream when the section selects it."""
-        return StreamPlan(section) if section.selects(cell.as_dict()) else None
+        return StreamPlan(section) if section.selection.selects(cell.as_dict()) else None
 
     def figure(self, key: str, metrics: Measurement) -> float | None:
         """The stream's stored figure `key`; None when the cell has none (it did not stream, or too few

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from bench_matrix.matrix.load import Loading, selector
+from bench_matrix.matrix.load import Loading
 from bench_matrix.scenarios.stream.spec import MAX_FRAMES, MIN_FRAMES, StreamSpec
 
 AT = ("stream",)
@@ -14,14 +14,9 @@ AT = ("stream",)
 def stream(data: dict[str, Any], loading: Loading) -> StreamSpec:
     """The typed section; every problem is added to `loading.report`."""
     report = loading.report
-    cells = data.get("cells", "all")
-    selected = None if cells == "all" else tuple(selector(AT + ("cells", i), s, loading.known, report)
-                                                 for i, s in enumerate(cells))
-    exclude = tuple(selector(AT + ("exclude", i), s, loading.known, report)
-                    for i, s in enumerate(data.get("exclude", [])))
     spec = StreamSpec(rate_hz=data.get("rate_hz", StreamSpec.rate_hz),
                       duration_s=data.get("duration_s", StreamSpec.duration_s),
-                      policy=data.get("policy", StreamSpec.policy), cells=selected, exclude=exclude)
+                      policy=data.get("policy", StreamSpec.policy), selection=loading.selection(AT, data))
     if not MIN_FRAMES <= spec.frames <= MAX_FRAMES:
         report.add(AT + ("duration_s",), f"rate_hz × duration_s makes {spec.frames} frames "
                                          f"({spec.rate_hz:g} Hz × {spec.duration_s:g} s); allowed: "

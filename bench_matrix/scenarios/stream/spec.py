@@ -6,7 +6,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from bench_matrix.matrix.schema import SELECTION, seconds
-from bench_matrix.matrix.spec import Selector
+from bench_matrix.matrix.spec import Selection
 
 POLICIES = ("skip", "queue")
 MAX_RATE_HZ = 10_000
@@ -31,22 +31,16 @@ class StreamSpec:
     rate_hz: float = 30.0
     duration_s: float = 10.0
     policy: str = "skip"
-    cells: tuple[Selector, ...] | None = None  # None: every cell
-    exclude: tuple[Selector, ...] = ()
+    selection: Selection = Selection()
 
     @property
     def frames(self) -> int:
         """Frames in the stream: rate × duration, rounded."""
         return round(self.rate_hz * self.duration_s)
 
-    def selects(self, cell: dict[str, str]) -> bool:
-        """True when the cell (as a dict) is among `cells` and not excluded."""
-        chosen = self.cells is None or any(s.matches(cell) for s in self.cells)
-        return chosen and not any(s.matches(cell) for s in self.exclude)
-
     def stream_dict(self) -> dict[str, Any]:
         """How the stream runs (selection aside): what a stream result depends on."""
-        return {k: v for k, v in asdict(self).items() if k not in ("cells", "exclude")}
+        return {k: v for k, v in asdict(self).items() if k != "selection"}
 
 
 SCHEMA: dict[str, Any] = {
