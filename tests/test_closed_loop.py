@@ -97,7 +97,12 @@ def test_a_model_that_cannot_drive_is_skipped_by_all_and_refused_when_named(onnx
      "closed_loop.modes[0]: 'lockstep' is not allowed; allowed: lock_step, real_time; did you mean "
      "'lock_step'?"),
     ("closed_loop: {circuits: [simpel]}", "closed_loop.circuits[0]: 'simpel' is not allowed; allowed: oval, "
-                                          "simple, curvy, twisty; did you mean 'simple'?"),
+                                          "simple, curvy, twisty, hairpin; did you mean "
+                                          "'simple'?"),
+    ("closed_loop: {vehicle: {steering_tau_ms: -1}}",
+     "closed_loop.vehicle.steering_tau_ms: must be >= 0, got -1"),
+    ("closed_loop: {vehicle: small}",
+     "closed_loop.vehicle: 'small' is not allowed; allowed: ideal, small_robot"),
     ("closed_loop: {brain_period_ms: 0}", "closed_loop.brain_period_ms: must be >= 1, got 0"),
     ("closed_loop: {cells: some}", "closed_loop.cells: 'some' is not allowed; allowed: all"),
     ("closed_loop: {circuits: [{name: mine, points: [[0, 0], [10, 0], [10, 6], [0, 6]]}]}",

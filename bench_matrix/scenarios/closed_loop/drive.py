@@ -73,7 +73,7 @@ def drive(circuit: Track, brain: SessionBrain, settings: SimSettings) -> dict[st
         return {"failed": str(error)}
     return {**lap, "inference_ms": timing_ms(brain.inference_s), "time_limit_s": settings.time_limit_s,
             "brain_period_ms": settings.brain_period_s * 1e3,
-            "latency_budget_ms": settings.latency_budget_s * 1e3}
+            "latency_budget_ms": settings.latency_budget_s * 1e3, "vehicle": settings.response.as_ms()}
 
 
 def circuit_of(spec: CircuitSpec) -> Track:
@@ -86,7 +86,8 @@ def sim_settings(section: ClosedLoopSpec, spec: CircuitSpec, circuit: Track, mod
     limit = spec.time_limit_s or section.time_limit_s or default_time_limit(circuit)
     budget = section.latency_budget_ms / 1e3 if mode == "real_time" else 0.0
     return SimSettings(mode=mode, brain_period_s=section.brain_period_ms / 1e3, latency_budget_s=budget,
-                       time_limit_s=float(limit), off_road_limit_s=section.off_road_limit_s)
+                       time_limit_s=float(limit), off_road_limit_s=section.off_road_limit_s,
+                       response=section.vehicle)
 
 
 def describe(circuit: Track) -> dict[str, Any]:

@@ -3,13 +3,15 @@ checked against the matrix, models selected by name that cannot drive refused.""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 from bench_matrix.matrix.load import Loading, selector
 from bench_matrix.matrix.spec import DatasetSpec, ModelSpec
 from bench_matrix.matrix.yamlpos import Located, suggest
-from bench_matrix.scenarios.closed_loop.spec import CircuitSpec, ClosedLoopSpec
+from bench_matrix.scenarios.closed_loop.spec import VEHICLES, CircuitSpec, ClosedLoopSpec
 from bench_matrix.workload.driving.circuits import BUILTIN_CIRCUITS, user_circuit
+from bench_matrix.workload.driving.vehicle import SMALL_ROBOT, Response
 
 AT = ("closed_loop",)
 
@@ -46,7 +48,14 @@ def closed_loop(data: dict[str, Any], loading: Loading) -> ClosedLoopSpec:
                           latency_budget_ms=data.get("latency_budget_ms", ClosedLoopSpec.latency_budget_ms),
                           time_limit_s=data.get("time_limit_s"),
                           off_road_limit_s=data.get("off_road_limit_s", ClosedLoopSpec.off_road_limit_s),
-                          cells=selected, exclude=exclude)
+                          vehicle=vehicle(data.get("vehicle", "ideal")), cells=selected, exclude=exclude)
+
+
+def vehicle(entry: str | dict[str, float]) -> Response:
+    """A named response, or small_robot's with the time constants and delay given (ms) instead."""
+    if isinstance(entry, str):
+        return VEHICLES[entry]
+    return replace(SMALL_ROBOT, **{key.replace("_ms", "_s"): value / 1e3 for key, value in entry.items()})
 
 
 def _circuit(i: int, entry: str | dict[str, Any], report: Located) -> CircuitSpec:

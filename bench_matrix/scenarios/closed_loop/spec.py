@@ -10,6 +10,9 @@ from bench_matrix.matrix.spec import Selector
 from bench_matrix.workload.driving.circuits import BUILTIN_CIRCUITS
 from bench_matrix.workload.driving.points import MAX_COORDINATE
 from bench_matrix.workload.driving.simulator import MODES
+from bench_matrix.workload.driving.vehicle import SMALL_ROBOT, Response
+
+VEHICLES = {"ideal": Response(), "small_robot": SMALL_ROBOT}  # named responses (docs/closed-loop.md)
 
 
 @dataclass(frozen=True)
@@ -32,6 +35,7 @@ class ClosedLoopSpec:
     latency_budget_ms: float = 0.0  # real_time: added to every measured brain time
     time_limit_s: float | None = None  # per circuit, simulated seconds; None: each circuit's default
     off_road_limit_s: float = 2.0
+    vehicle: Response = Response()  # how the car answers its commands (the ideal car by default)
     cells: tuple[Selector, ...] | None = None  # None: every cell
     exclude: tuple[Selector, ...] = ()
 
@@ -41,8 +45,10 @@ class ClosedLoopSpec:
         return chosen and not any(s.matches(cell) for s in self.exclude)
 
     def drive_dict(self) -> dict[str, Any]:
-        """How the cells drive (selection aside): what a closed-loop result depends on."""
-        return {k: v for k, v in asdict(self).items() if k not in ("cells", "exclude")}
+        """How the cells drive (selection aside): what a closed-loop result depends on; the ideal vehicle is
+        left out, so results stored before there was a choice keep their fingerprints."""
+        left_out = ("cells", "exclude") + (("vehicle",) if self.vehicle == Response() else ())
+        return {k: v for k, v in asdict(self).items() if k not in left_out}
 
 
 CIRCUIT = {
@@ -65,6 +71,15 @@ CIRCUIT = {
     "description": "a built-in circuit's name, or {name, points, lane_width} (or {name, time_limit_s})",
 }
 
+_MS = {"type": "number", "minimum": 0, "maximum": 2_000}
+VEHICLE = {
+    "if": {"type": "string"},
+    "then": {"enum": list(VEHICLES)},
+    "else": {"type": "object", "additionalProperties": False, "minProperties": 1,
+             "properties": {"steering_tau_ms": _MS, "speed_tau_ms": _MS, "actuation_delay_ms": _MS}},
+    "description": "how the car answers: ideal (default), small_robot, or {steering_tau_ms, ...}",
+}
+
 SCHEMA: dict[str, Any] = {
     "type": "object", "additionalProperties": False,
     "description": "drive laps in the built-in simulator with the cells' own artifacts (docs/closed-loop.md)",
@@ -79,6 +94,7 @@ SCHEMA: dict[str, Any] = {
         "time_limit_s": seconds(3_600, exclusive=True, description="simulated seconds per circuit"),
         "off_road_limit_s": seconds(600, exclusive=True,
                                      description="a lap stops after this long off the road in one go"),
+        "vehicle": VEHICLE,
         **SELECTION,
     },
 }
