@@ -24,17 +24,19 @@ class Response:
     steering_tau_s: float = 0.0
     speed_tau_s: float = 0.0
     actuation_delay_s: float = 0.0
+    grip_mps2: float = 0.0  # the largest lateral acceleration the tyres hold (beyond it the car runs wide)
 
-    def as_ms(self) -> dict[str, float]:
-        """The response as the matrix and the records give it: milliseconds."""
+    def as_record(self) -> dict[str, float]:
+        """The response as the matrix and the records give it: times in milliseconds."""
         return {"steering_tau_ms": self.steering_tau_s * 1e3, "speed_tau_ms": self.speed_tau_s * 1e3,
-                "actuation_delay_ms": self.actuation_delay_s * 1e3}
+                "actuation_delay_ms": self.actuation_delay_s * 1e3, "grip_mps2": self.grip_mps2}
 
 
 IDEAL = Response()
-# A 1:10 robot car (docs/closed-loop.md): a servo turning 60 degrees in 0.16 s and F1TENTH's 3.2 rad/s steering
-# rate limit; a motor reaching a new speed in about a second (F1TENTH's 9.51 m/s^2 at most); a 50 Hz servo frame
-SMALL_ROBOT = Response(steering_tau_s=0.1, speed_tau_s=0.5, actuation_delay_s=0.02)
+# A 1:10 robot car (docs/closed-loop.md): a servo turning 60 degrees in 0.16 s and F1TENTH's 3.2 rad/s
+# steering rate limit; a motor reaching a new speed in about a second (F1TENTH's 9.51 m/s^2 at most); a
+# 50 Hz servo frame; tyres holding 1.05 g (F1TENTH's friction coefficient)
+SMALL_ROBOT = Response(steering_tau_s=0.1, speed_tau_s=0.5, actuation_delay_s=0.02, grip_mps2=10.3)
 
 
 @dataclass
@@ -76,6 +78,8 @@ class Car:
     def advance(self, dt: float) -> float:
         """Move exactly along the arc of constant speed and yaw rate for dt; return the distance driven."""
         rate = self.v * self.w / W_GAIN
+        if self.response.grip_mps2 > 0 and self.v > 0:
+            rate = float(np.clip(rate, -self.response.grip_mps2 / self.v, self.response.grip_mps2 / self.v))
         if abs(rate * dt) < 1e-9:
             self.x += self.v * dt * math.cos(self.yaw)
             self.y += self.v * dt * math.sin(self.yaw)
