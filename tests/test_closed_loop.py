@@ -174,8 +174,8 @@ def test_margins_of_a_trained_pilotnet_are_searched_with_its_own_session(trained
     """Each probe a lock-step lap of the cell's session on the lagged car: the record holds every search's
     answer and probes, the report its margins table and plot."""
     section = ("closed_loop: {circuits: [oval], modes: [lock_step], vehicle: small_robot, margins: "
-               "{latency: {limit_ms: 200, resolution_ms: 100}, speed: {limit: 1.5, resolution: 0.25}, "
-               "perception: {limit: 0.5, resolution: 0.25, kind: mix, seed: 3}}}\n")
+               "{latency: {limit_ms: 200, resolution_ms: 100}, speed: {limit: 1.5, resolution: 0.5}, "
+               "perception: {limit: 0.5, resolution: 0.5, kind: mix, seed: 3}}}\n")
     run(trained, pilotnet_matrix("[onnxruntime]", section, TRAINED, 10))
     record = records(trained)["onnxruntime"]
     margins = record["metrics"]["closed_loop_margins"]["oval"]
@@ -184,7 +184,7 @@ def test_margins_of_a_trained_pilotnet_are_searched_with_its_own_session(trained
         assert answer["outcome"] in ("found", "passes_at_limit", "fails_at_start"), answer
         assert answer["laps"] == len(answer["probes"]) >= 1 and answer["wall_s"] > 0
         assert answer["probes"][0][0] == answer["start"] and answer["resolution"] == {
-            "latency": 100, "speed": 0.25, "perception": 0.25}[kind]
+            "latency": 100, "speed": 0.5, "perception": 0.5}[kind]
         if answer["outcome"] == "found":
             assert [answer["value"], True] in answer["probes"]
             assert [answer["failed_at"], False] in answer["probes"]

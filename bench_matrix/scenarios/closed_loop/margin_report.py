@@ -16,15 +16,14 @@ from bench_matrix.store import CellRecord
 from bench_matrix.workload.driving.margins import OUTCOMES
 
 TITLES = {"latency": "Latency margin ms", "speed": "Speed margin ×", "perception": "Perception margin"}
-NOTES = {"latency": "the largest delay, in ms, each brain step may take (lock-step: exact) with the lap still "
-                    "completed without leaving the road",
+NOTES = {"latency": "the largest delay, in ms, each brain step may take (lock-step: exact) with the lap "
+                    "still completed without leaving the road",
          "speed": "the largest factor on every commanded speed the lap survives",
          "perception": "the strongest camera perturbation the lap survives (0 to 1: its strength)"}
 INTRO = ("Margins: how far each cell is from failing, each found by bisection on its own lock-step laps "
-         "(docs/closed-loop.md, Margins): a–b: the largest value passed, a, and the next value of the search's "
-         "grid, b, one resolution above, failed; ≥ the limit when it never failed; none when even the "
-         "unchanged lap failed. "
-         "× baseline: the cell's margin ÷ the fp32 baseline's on the same circuit.")
+         "(docs/closed-loop.md, Margins): a–b: the largest value passed, a, and the next value of the "
+         "search's grid, b, one resolution above, failed; ≥ the limit when it never failed; none when even "
+         "the unchanged lap failed. × baseline: the cell's margin ÷ the fp32 baseline's on the same circuit.")
 PLOT_INCHES = (4.0, 0.35)  # a panel's width, and the height per bar
 
 
@@ -78,7 +77,8 @@ def spread_lines(rows: list[MarginRow]) -> list[str]:
     lines = []
     for circuit in dict.fromkeys(row.circuit for row in rows):
         for kind in kinds(rows):
-            answers = [(row.record.cell.label, row.margins.get(kind)) for row in rows if row.circuit == circuit]
+            answers = [(row.record.cell.label, row.margins.get(kind)) for row in rows
+                       if row.circuit == circuit]
             values = sorted((value, label) for label, a in answers if (value := _value(a)) is not None)
             if len(values) < 2:
                 continue
@@ -94,7 +94,8 @@ def spread_lines(rows: list[MarginRow]) -> list[str]:
 def columns(rows: list[MarginRow]) -> list[tuple[str, str, Callable[[MarginRow], str]]]:
     """(header, note, renderer) of the margins table's columns."""
     found: list[tuple[str, str, Callable[[MarginRow], str]]] = [
-        ("Method", "the cell.", lambda row: row.record.cell.label + (" (baseline)" if row.is_baseline else "")),
+        ("Method", "the cell.",
+         lambda row: row.record.cell.label + (" (baseline)" if row.is_baseline else "")),
         ("Circuit", "the circuit searched on.", lambda row: row.circuit)]
     for kind in kinds(rows):
         found += [(TITLES[kind], NOTES[kind], lambda row, k=kind: shown(row.margins.get(k))),

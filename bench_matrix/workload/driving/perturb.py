@@ -20,12 +20,12 @@ def dim(frame: np.ndarray, strength: float) -> np.ndarray:
     """Less light and less contrast: pixel values scaled about the image's mean, then the whole image."""
     keep = 1.0 - DARKEST * strength
     mean = frame.mean(axis=(0, 1), keepdims=True)
-    return (mean + (frame - mean) * keep) * keep
+    return (mean + (frame - mean) * np.float32(keep)) * np.float32(keep)
 
 
 def noise(frame: np.ndarray, strength: float, rng: np.random.Generator) -> np.ndarray:
     """Sensor noise: independent Gaussian noise on every pixel and channel."""
-    return frame + rng.normal(0.0, NOISE_SIGMA * strength, frame.shape)
+    return frame + rng.standard_normal(frame.shape, dtype=np.float32) * np.float32(NOISE_SIGMA * strength)
 
 
 def blur(frame: np.ndarray, strength: float) -> np.ndarray:
@@ -36,18 +36,18 @@ def blur(frame: np.ndarray, strength: float) -> np.ndarray:
     radius = int(np.ceil(3 * sigma))
     taps = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
     taps /= taps.sum()
-    for axis in (0, 1):
-        padded = np.pad(frame, [(radius, radius) if a == axis else (0, 0) for a in range(3)], mode="edge")
-        frame = sum(t * np.take(padded, np.arange(k, k + frame.shape[axis]), axis=axis)
-                    for k, t in enumerate(taps))
-    return frame
+    rows, cols = frame.shape[:2]
+    down = np.pad(frame, [(radius, radius), (0, 0), (0, 0)], mode="edge")
+    frame = sum(np.float32(t) * down[k:k + rows] for k, t in enumerate(taps))
+    across = np.pad(frame, [(0, 0), (radius, radius), (0, 0)], mode="edge")
+    return sum(np.float32(t) * across[:, k:k + cols] for k, t in enumerate(taps))
 
 
 def perturb(frame: np.ndarray, kind: str, strength: float, seed: int, step: int) -> np.ndarray:
     """The frame (uint8) under perturbation `kind` at `strength`; the noise drawn from (seed, step)."""
     if strength <= 0:
         return frame
-    image = frame.astype(np.float64)
+    image = frame.astype(np.float32)
     if kind in ("light", "mix"):
         image = dim(image, strength)
     if kind in ("blur", "mix"):
