@@ -106,7 +106,7 @@ def test_a_model_that_cannot_drive_is_skipped_by_all_and_refused_when_named(onnx
     ("closed_loop: {margins: {circuits: [simple]}}",
      "closed_loop.margins: name at least one margin to search: latency, speed, perception"),
     ("closed_loop: {margins: {speed: {limit: 1.02}}}",
-     "closed_loop.margins.speed: the speed margin's search from 1 to its limit 1.02 must span more than its "
+     "closed_loop.margins.speed: the speed margin's search from 1 to its limit 1.02 must span at least its "
      "resolution 0.05"),
     ("closed_loop: {margins: {perception: {kind: fog}}}",
      "closed_loop.margins.perception.kind: 'fog' is not allowed; allowed: light, noise, blur, mix"),

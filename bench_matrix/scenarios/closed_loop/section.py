@@ -73,8 +73,8 @@ def margins(data: dict[str, Any], circuits: list[str], loading: Loading) -> Marg
 
 
 def searches(data: dict[str, Any], report: Located) -> tuple[MarginSpec, ...]:
-    """The margins to search, in the order latency, speed, perception; a range too small to search (its
-    resolution not below its length) reported."""
+    """The margins to search, in the order latency, speed, perception; a range shorter than its resolution
+    reported."""
     if not set(data) & set(MARGIN_RANGES):
         report.add(AT + ("margins",), f"name at least one margin to search: {', '.join(MARGIN_RANGES)}")
     found = []
@@ -83,9 +83,9 @@ def searches(data: dict[str, Any], report: Located) -> tuple[MarginSpec, ...]:
             continue
         given, unit = data[kind], "_ms" if kind == "latency" else ""
         knob = (start, given.get(f"limit{unit}", limit), given.get(f"resolution{unit}", resolution))
-        if knob[1] - knob[0] <= knob[2]:
+        if knob[1] - knob[0] < knob[2]:
             report.add(AT + ("margins", kind), f"the {kind} margin's search from {knob[0]:g} to its limit "
-                                               f"{knob[1]:g} must span more than its resolution {knob[2]:g}")
+                                               f"{knob[1]:g} must span at least its resolution {knob[2]:g}")
             continue
         found.append(MarginSpec(kind, Knob(*knob), given.get("kind", "mix"), given.get("seed", 0)))
     return tuple(found)
