@@ -97,7 +97,21 @@ def test_a_model_that_cannot_drive_is_skipped_by_all_and_refused_when_named(onnx
      "closed_loop.modes[0]: 'lockstep' is not allowed; allowed: lock_step, real_time; did you mean "
      "'lock_step'?"),
     ("closed_loop: {circuits: [simpel]}", "closed_loop.circuits[0]: 'simpel' is not allowed; allowed: oval, "
-                                          "simple, curvy, twisty; did you mean 'simple'?"),
+                                          "simple, curvy, twisty, hairpin; did you mean "
+                                          "'simple'?"),
+    ("closed_loop: {vehicle: {steering_tau_ms: -1}}",
+     "closed_loop.vehicle.steering_tau_ms: must be >= 0, got -1"),
+    ("closed_loop: {margins: {latency: {}, circuits: [oval]}}",
+     "closed_loop.margins.circuits[0]: 'oval' is not one of the section's circuits (simple)"),
+    ("closed_loop: {margins: {circuits: [simple]}}",
+     "closed_loop.margins: name at least one margin to search: latency, speed, perception"),
+    ("closed_loop: {margins: {speed: {limit: 1.02}}}",
+     "closed_loop.margins.speed: the speed margin's search from 1 to its limit 1.02 must span at least its "
+     "resolution 0.05"),
+    ("closed_loop: {margins: {perception: {kind: fog}}}",
+     "closed_loop.margins.perception.kind: 'fog' is not allowed; allowed: light, noise, blur, mix"),
+    ("closed_loop: {vehicle: small}",
+     "closed_loop.vehicle: 'small' is not allowed; allowed: ideal, small_robot"),
     ("closed_loop: {brain_period_ms: 0}", "closed_loop.brain_period_ms: must be >= 1, got 0"),
     ("closed_loop: {cells: some}", "closed_loop.cells: 'some' is not allowed; allowed: all"),
     ("closed_loop: {circuits: [{name: mine, points: [[0, 0], [10, 0], [10, 6], [0, 6]]}]}",
@@ -153,3 +167,30 @@ def test_a_slowed_brain_drives_worse_in_real_time(trained: Path) -> None:
     assert slowest_rate(quick) <= quick["brain_hz"]  # late by its own measured time, not more (~20 Hz)
     assert slow["completed_pct"] < steady["completed_pct"] and \
         slow["deviation_mae_m"] > 1.3 * steady["deviation_mae_m"], (steady, slow)
+
+
+@pytest.mark.slow
+def test_margins_of_a_trained_pilotnet_are_searched_with_its_own_session(trained: Path) -> None:
+    """Each probe a lock-step lap of the cell's session on the lagged car: the record holds every search's
+    answer and probes, the report its margins table and plot."""
+    section = ("closed_loop: {circuits: [oval], modes: [lock_step], vehicle: small_robot, margins: "
+               "{latency: {limit_ms: 200, resolution_ms: 100}, speed: {limit: 1.5, resolution: 0.5}, "
+               "perception: {limit: 0.5, resolution: 0.5, kind: mix, seed: 3}}}\n")
+    run(trained, pilotnet_matrix("[onnxruntime]", section, TRAINED, 10))
+    record = records(trained)["onnxruntime"]
+    margins = record["metrics"]["closed_loop_margins"]["oval"]
+    assert list(margins) == ["latency", "speed", "perception"]
+    for kind, answer in margins.items():
+        assert answer["outcome"] in ("found", "passes_at_limit", "fails_at_start"), answer
+        assert answer["laps"] == len(answer["probes"]) >= 1 and answer["wall_s"] > 0
+        assert answer["probes"][0][0] == answer["start"] and answer["resolution"] == {
+            "latency": 100, "speed": 0.5, "perception": 0.5}[kind]
+        if answer["outcome"] == "found":
+            assert [answer["value"], True] in answer["probes"]
+            assert [answer["failed_at"], False] in answer["probes"]
+    assert margins["perception"]["perturbation"] == "mix" and margins["perception"]["seed"] == 3
+    out = cli(trained, "report", "--format", "md", "--out", str(trained / "pages"))
+    assert out.returncode == 0, out.stderr
+    page = (trained / "pages" / "pilotnet.md").read_text()
+    assert "### Margins" in page and "| onnxruntime none fp32 | oval |" in page
+    assert (trained / "pages" / "plots" / "margins-pilotnet.png").read_bytes()[:4] == b"\x89PNG"

@@ -54,12 +54,20 @@ def with_scenarios(fragment: dict[str, Any]) -> dict[str, Any]:
     out = copy.deepcopy(fragment)
     for scenario in scenarios():
         if scenario.requirements:
-            keys = {key: {"type": "number", "minimum": 0, "maximum": 1e12,
-                          "description": f"{what}, {bound}imum"}
+            keys = {key: _scenario_limit(bound, f"{what}, {bound}imum")
                     for key, (bound, what) in scenario.requirements.items()}
             out["properties"][scenario.name] = {"type": "object", "additionalProperties": False,
                                                 "minProperties": 1, "properties": keys}
     return out
+
+
+def _scenario_limit(bound: str, description: str) -> dict[str, Any]:
+    """A scenario figure's limit: a number, or {min: X} (or {max: X}) naming the figure's own bound."""
+    number = {"type": "number", "minimum": 0, "maximum": 1e12}
+    return {"if": {"type": "object"},
+            "then": {"type": "object", "additionalProperties": False, "required": [bound],
+                     "properties": {bound: number}},
+            "else": number, "description": f"{description}: X or {{{bound}: X}}"}
 
 
 @dataclass(frozen=True)
@@ -98,7 +106,8 @@ class Requirements:
             elif key in TIMED or key in SIZES:
                 limits.append(Limit(key, {**TIMED, **SIZES}[key], float(value)))
             elif key in scenarios and isinstance(value, Mapping):
-                limits += [Limit(f"{key}.{name}", scenarios[key][name], float(v))
+                limits += [Limit(f"{key}.{name}", scenarios[key][name],
+                                 float(v[scenarios[key][name]] if isinstance(v, Mapping) else v))
                            for name, v in value.items()]
             elif isinstance(value, Mapping):
                 limits += [Limit(key, bound, float(value[bound])) for bound in BOUND_KEYS if bound in value]

@@ -11,7 +11,9 @@ from bench_matrix.cell import Planned
 from bench_matrix.matrix.load import Loading
 from bench_matrix.scenarios.base import Scenario
 from bench_matrix.scenarios.closed_loop.section import closed_loop, drive_problem
-from bench_matrix.scenarios.closed_loop.spec import SCHEMA, ClosedLoopSpec
+from bench_matrix.scenarios.closed_loop.spec import SCHEMA, ClosedLoopSpec, MarginsSpec
+
+MARGIN_FIGURES = {"latency_margin_ms": "latency", "speed_margin": "speed", "perception_margin": "perception"}
 
 if TYPE_CHECKING:
     from bench_matrix.cell import Cell
@@ -28,9 +30,11 @@ class ClosedLoopPlan(Planned):
     spec: ClosedLoopSpec
     labels: LabelSpec
     skip: str | None = None
+    margins: MarginsSpec | None = None  # the margins this cell searches (None: none)
 
     def fingerprint(self) -> dict[str, Any]:
-        return {"drive": self.spec.drive_dict(), "skip": self.skip}
+        searched = {"margins": self.margins.search_dict()} if self.margins else {}
+        return {"drive": self.spec.drive_dict(), "skip": self.skip, **searched}
 
     def describe(self) -> str:
         """Circuits × modes, or why the cell cannot drive."""
@@ -38,7 +42,9 @@ class ClosedLoopPlan(Planned):
 
         if self.skip:
             return f"[yellow]not driven:[/] {escape(self.skip)}"
-        return f"{', '.join(c.name for c in self.spec.circuits)} × {', '.join(self.spec.modes)}"
+        laps = f"{', '.join(c.name for c in self.spec.circuits)} × {', '.join(self.spec.modes)}"
+        margins = ", ".join(m.kind for m in self.margins.searches) if self.margins else ""
+        return f"{laps}; margins: {margins}" if margins else laps
 
     def timed(self) -> bool:
         """Real-time laps run on the wall clock."""
@@ -53,7 +59,9 @@ class ClosedLoop(Scenario):
     schema = SCHEMA
     requirements = {"completed_pct": ("min", "completed % of the cell's worst lap"),
                     "deviation_mae_m": ("max", "mean deviation from the reference line of the worst lap, m"),
-                    "brain_hz": ("min", "achieved brain rate of the slowest lap, Hz")}
+                    "brain_hz": ("min", "achieved brain rate of the slowest lap, Hz"),
+                    **{figure: ("min", f"{kind} margin on the cell's hardest margin circuit")
+                       for figure, kind in MARGIN_FIGURES.items()}}
     section = "bench_matrix.scenarios.closed_loop.trajectories:SECTION"
 
     def read(self, data: dict[str, Any], loading: Loading) -> ClosedLoopSpec:
@@ -65,11 +73,15 @@ class ClosedLoop(Scenario):
             return None
         model = matrix.model(cell.model)
         dataset = matrix.dataset_of(model)
-        return ClosedLoopPlan(section, dataset.labels, drive_problem(model, dataset, matrix.task_of(model)))
+        searched = section.margins if section.margins and section.margins.selects(cell.as_dict()) else None
+        return ClosedLoopPlan(section, dataset.labels, drive_problem(model, dataset, matrix.task_of(model)),
+                              searched)
 
     def figure(self, key: str, metrics: Measurement) -> float | None:
-        """The worst lap's figure (every circuit and mode); None when a lap lacks it (it failed) or none
-        ran."""
+        """The worst lap's figure (every circuit and mode), or the smallest margin of every margin circuit;
+        None when a lap lacks it (it failed) or none ran, or a margin was not searched or failed at once."""
+        if key in MARGIN_FIGURES:
+            return smallest_margin(metrics.others.get("closed_loop_margins"), MARGIN_FIGURES[key])
         driven = metrics.others.get("closed_loop")
         laps = [lap for modes in driven.values() if isinstance(modes, dict) for lap in modes.values()
                 ] if isinstance(driven, dict) else []
@@ -77,3 +89,14 @@ class ClosedLoop(Scenario):
         if not values or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
             return None
         return float(max(values) if self.requirements[key][0] == "max" else min(values))
+
+
+def smallest_margin(searched: Any, kind: str) -> float | None:
+    """The smallest `kind` margin over the circuits searched (a lower bound where it passed at the limit);
+    None when a circuit lacks it or failed even unchanged."""
+    answers = [margins.get(kind) for margins in searched.values() if isinstance(margins, dict)
+               ] if isinstance(searched, dict) else []
+    values = [a.get("value") if isinstance(a, dict) else None for a in answers]
+    if not values or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
+        return None
+    return float(min(values))

@@ -15,6 +15,7 @@ from bench_matrix.images import geometric, to_model_input
 from bench_matrix.matrix.spec import LabelSpec, Preprocess
 from bench_matrix.scenarios.base import Loaded, Outcome
 from bench_matrix.scenarios.closed_loop import ClosedLoopPlan
+from bench_matrix.scenarios.closed_loop.margins import search_margins
 from bench_matrix.scenarios.closed_loop.spec import CircuitSpec, ClosedLoopSpec
 from bench_matrix.tensors import SINGLE, TensorSpec, bind
 from bench_matrix.workload.driving.circuit import Track
@@ -46,14 +47,16 @@ class SessionBrain:
 
 
 def drive_all(loaded: Loaded, plan: ClosedLoopPlan) -> Outcome:
-    """The record's closed-loop fields: `closed_loop` {circuit: {mode: lap}} and `closed_loop_circuits`
-    {circuit: reference line and size}; or `closed_loop_skipped` with the reason the model cannot drive."""
+    """The record's closed-loop fields: `closed_loop` {circuit: {mode: lap}}, `closed_loop_circuits`
+    {circuit: reference line and size} and the margins searched (`closed_loop_margins`); or
+    `closed_loop_skipped` with the reason the model cannot drive."""
     if plan.skip:
         return Outcome({"closed_loop_skipped": plan.skip})
     job = loaded.job
     brain = SessionBrain(loaded.session, job.data.preprocess, job.layout, plan.labels, job.source.inputs)
     laps: dict[str, dict[str, Any]] = {}
     circuits: dict[str, Any] = {}
+    searched: dict[str, tuple[Track, SimSettings]] = {}
     for spec in plan.spec.circuits:
         circuit = circuit_of(spec)
         circuits[spec.name] = describe(circuit)
@@ -61,7 +64,12 @@ def drive_all(loaded: Loaded, plan: ClosedLoopPlan) -> Outcome:
         for mode in plan.spec.modes:
             phase(f"closed loop · {spec.name} · {mode}")
             laps[spec.name][mode] = drive(circuit, brain, sim_settings(plan.spec, spec, circuit, mode))
-    return Outcome({"closed_loop": laps, "closed_loop_circuits": circuits})
+        if plan.margins and spec.name in (plan.margins.circuits or (spec.name,)):
+            searched[spec.name] = (circuit, sim_settings(plan.spec, spec, circuit, "lock_step"))
+    fields = {"closed_loop": laps, "closed_loop_circuits": circuits}
+    if plan.margins:
+        fields["closed_loop_margins"] = search_margins(brain, plan.margins.searches, searched)
+    return Outcome(fields)
 
 
 def drive(circuit: Track, brain: SessionBrain, settings: SimSettings) -> dict[str, Any]:
@@ -73,7 +81,7 @@ def drive(circuit: Track, brain: SessionBrain, settings: SimSettings) -> dict[st
         return {"failed": str(error)}
     return {**lap, "inference_ms": timing_ms(brain.inference_s), "time_limit_s": settings.time_limit_s,
             "brain_period_ms": settings.brain_period_s * 1e3,
-            "latency_budget_ms": settings.latency_budget_s * 1e3}
+            "latency_budget_ms": settings.latency_budget_s * 1e3, "vehicle": settings.response.as_record()}
 
 
 def circuit_of(spec: CircuitSpec) -> Track:
@@ -86,7 +94,8 @@ def sim_settings(section: ClosedLoopSpec, spec: CircuitSpec, circuit: Track, mod
     limit = spec.time_limit_s or section.time_limit_s or default_time_limit(circuit)
     budget = section.latency_budget_ms / 1e3 if mode == "real_time" else 0.0
     return SimSettings(mode=mode, brain_period_s=section.brain_period_ms / 1e3, latency_budget_s=budget,
-                       time_limit_s=float(limit), off_road_limit_s=section.off_road_limit_s)
+                       time_limit_s=float(limit), off_road_limit_s=section.off_road_limit_s,
+                       response=section.vehicle)
 
 
 def describe(circuit: Track) -> dict[str, Any]:

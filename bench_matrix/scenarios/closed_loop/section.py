@@ -3,13 +3,23 @@ checked against the matrix, models selected by name that cannot drive refused.""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 from bench_matrix.matrix.load import Loading, selector
 from bench_matrix.matrix.spec import DatasetSpec, ModelSpec
 from bench_matrix.matrix.yamlpos import Located, suggest
-from bench_matrix.scenarios.closed_loop.spec import CircuitSpec, ClosedLoopSpec
+from bench_matrix.scenarios.closed_loop.spec import (
+    MARGIN_RANGES,
+    VEHICLES,
+    CircuitSpec,
+    ClosedLoopSpec,
+    MarginSpec,
+    MarginsSpec,
+)
+from bench_matrix.workload.driving.margins import Knob
 from bench_matrix.workload.driving.circuits import BUILTIN_CIRCUITS, user_circuit
+from bench_matrix.workload.driving.vehicle import SMALL_ROBOT, Response
 
 AT = ("closed_loop",)
 
@@ -46,7 +56,57 @@ def closed_loop(data: dict[str, Any], loading: Loading) -> ClosedLoopSpec:
                           latency_budget_ms=data.get("latency_budget_ms", ClosedLoopSpec.latency_budget_ms),
                           time_limit_s=data.get("time_limit_s"),
                           off_road_limit_s=data.get("off_road_limit_s", ClosedLoopSpec.off_road_limit_s),
+                          vehicle=vehicle(data.get("vehicle", "ideal")),
+                          margins=margins(data["margins"], names, loading) if "margins" in data else None,
                           cells=selected, exclude=exclude)
+
+
+def margins(data: dict[str, Any], circuits: list[str], loading: Loading) -> MarginsSpec:
+    """The margins subsection: its searches, circuits (each one of the section's) and cells."""
+    at, report = AT + ("margins",), loading.report
+    cells = data.get("cells", "all")
+    return MarginsSpec(searches(data, report), margin_circuits(data, circuits, report),
+                       None if cells == "all" else tuple(selector(at + ("cells", i), s, loading.known, report)
+                                                         for i, s in enumerate(cells)),
+                       tuple(selector(at + ("exclude", i), s, loading.known, report)
+                             for i, s in enumerate(data.get("exclude", []))))
+
+
+def searches(data: dict[str, Any], report: Located) -> tuple[MarginSpec, ...]:
+    """The margins to search, in the order latency, speed, perception; a range shorter than its resolution
+    reported."""
+    if not set(data) & set(MARGIN_RANGES):
+        report.add(AT + ("margins",), f"name at least one margin to search: {', '.join(MARGIN_RANGES)}")
+    found = []
+    for kind, (start, limit, resolution, _, _) in MARGIN_RANGES.items():
+        if kind not in data:
+            continue
+        given, unit = data[kind], "_ms" if kind == "latency" else ""
+        knob = (start, given.get(f"limit{unit}", limit), given.get(f"resolution{unit}", resolution))
+        if knob[1] - knob[0] < knob[2]:
+            report.add(AT + ("margins", kind), f"the {kind} margin's search from {knob[0]:g} to its limit "
+                                               f"{knob[1]:g} must span at least its resolution {knob[2]:g}")
+            continue
+        found.append(MarginSpec(kind, Knob(*knob), given.get("kind", "mix"), given.get("seed", 0)))
+    return tuple(found)
+
+
+def margin_circuits(data: dict[str, Any], names: list[str], report: Located) -> tuple[str, ...]:
+    """The circuits margins are searched on: each must be one of the section's."""
+    chosen = tuple(data.get("circuits", ()))
+    for i, name in enumerate(chosen):
+        if name not in names:
+            report.add(AT + ("margins", "circuits", i), f"'{name}' is not one of the section's circuits "
+                                                         f"({', '.join(names)}){suggest(name, names)}")
+    return chosen
+
+
+def vehicle(entry: str | dict[str, float]) -> Response:
+    """A named response, or small_robot's with what is given (times in ms) instead."""
+    if isinstance(entry, str):
+        return VEHICLES[entry]
+    return replace(SMALL_ROBOT, **{key.replace("_ms", "_s"): value / 1e3 if key.endswith("_ms") else value
+                                   for key, value in entry.items()})
 
 
 def _circuit(i: int, entry: str | dict[str, Any], report: Located) -> CircuitSpec:

@@ -9,6 +9,7 @@ from functools import lru_cache
 import numpy as np
 
 from .circuit import Circuit, Track
+from .layouts import Segment, closed_layout
 from .points import PointCircuit
 
 DEFAULT_CIRCUIT = "simple"
@@ -17,10 +18,18 @@ MIN_AVERAGE_SPEED = 4.0  # m/s: the default time limit of a circuit is its lengt
 
 @dataclass(frozen=True)
 class BuiltinCircuit:
-    """A named circuit: a procedural seed (none of the training data's circuits) or a small oval."""
+    """A named circuit: a procedural seed (none of the training data's circuits), a layout or a small oval."""
 
     description: str
-    seed: int | None = None  # procedural Circuit.from_seed(seed); None: the oval
+    seed: int | None = None  # procedural Circuit.from_seed(seed); None: the layout, else the oval
+    layout: tuple[Segment, ...] = ()  # straights and arcs (layouts.py), its two longest straights closing it
+
+
+# The study's Montreal in spirit: a 245 m straight (after an S-bend) into a hairpin, two chicanes, a sweeping
+# return; arcs drawn 15 % wider than the 15 m the spline's curvature overshoots to at their ends (15.1 m)
+HAIRPIN_LAYOUT = ((0.0, 20.0), (20.0, 45.0), (20.0, -45.0), (0.0, 220.0), (17.3, 180.0), (0.0, 50.0),
+                  (19.0, -60.0), (19.0, 60.0), (0.0, 30.0), (19.0, -60.0), (19.0, 60.0), (0.0, 0.0),
+                  (25.0, 90.0), (0.0, 0.0), (25.0, 90.0))
 
 
 # Seeds chosen for their bends (max |curvature| 1/m, mean |curvature|): simple 0.032 / 0.0150, curvy 0.043 /
@@ -30,6 +39,8 @@ BUILTIN_CIRCUITS = {
     "simple": BuiltinCircuit("488 m, gentle bends (tightest radius 31 m)", seed=4),
     "curvy": BuiltinCircuit("387 m, medium bends (tightest radius 23 m)", seed=1),
     "twisty": BuiltinCircuit("372 m, the tightest bends (radius 19 m) and the most turning", seed=0),
+    "hairpin": BuiltinCircuit("721 m, a long straight into a 15 m hairpin, S-bends and chicanes at 15-16 m "
+                              "radius (the study's Montreal in spirit)", layout=HAIRPIN_LAYOUT),
 }
 
 
@@ -47,9 +58,11 @@ def oval_points(straight: float = 60.0, radius: float = 25.0, spacing: float = 5
 def builtin_circuit(name: str) -> Track:
     """The built-in circuit `name` (KeyError when there is none), built once per process."""
     spec = BUILTIN_CIRCUITS[name]
-    if spec.seed is None:
-        return PointCircuit(oval_points(), lane_width=7.5)
-    return Circuit.from_seed(spec.seed)
+    if spec.seed is not None:
+        return Circuit.from_seed(spec.seed)
+    if spec.layout:
+        return PointCircuit(closed_layout(list(spec.layout), (11, 13)), lane_width=7.5)
+    return PointCircuit(oval_points(), lane_width=7.5)
 
 
 def user_circuit(points: Sequence[Sequence[float]], lane_width: float) -> PointCircuit:

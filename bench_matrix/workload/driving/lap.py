@@ -13,6 +13,7 @@ import numpy as np
 
 from .circuit import Pose, Track
 from .expert import V_RANGE, W_RANGE
+from .vehicle import IDEAL, Response
 
 WINDOW_M = 30.0  # gates further than this ahead of the next one do not count yet (no short cuts)
 DEPARTURE_PENALTY = 0.8  # the driving score is multiplied by this for every road departure
@@ -27,7 +28,8 @@ class SimSettings:
 
     mode: str = "lock_step"  # lock_step: the world waits for the brain; real_time: it does not
     brain_period_s: float = 0.05  # target brain cycle (the study's 50 ms)
-    latency_budget_s: float = 0.0  # real_time: added to each measured brain time (emulates a slower target)
+    latency_budget_s: float = 0.0  # a slower target: real_time adds it to each measured brain time, lock_step
+    # deems every brain step to take exactly this long (0: the world waits)
     physics_step_s: float = 0.01
     time_limit_s: float = 120.0
     off_road_limit_s: float = 2.0  # the run stops once the car has been off the road this long in one go
@@ -35,6 +37,8 @@ class SimSettings:
     stuck_distance_m: float = 0.5
     checkpoint_spacing_m: float = 5.0
     trace_spacing_m: float = 1.0  # trajectory points kept at least this far apart
+    response: Response = IDEAL  # how the car answers its commands (lags, actuation delay)
+    speed_factor: float = 1.0  # every commanded speed is multiplied by this
 
 
 class NonFiniteCommand(ValueError):

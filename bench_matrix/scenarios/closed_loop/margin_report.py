@@ -1,0 +1,209 @@
+"""The closed-loop section's margins, from stored records only: each cell's margins on each margin circuit
+beside the baseline's and their ratio, how far apart the cells are, and a plot of every margin per cell."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from bench_matrix.report.analysis.summary import ModelSummary
+from bench_matrix.report.render.columns import DASH
+from bench_matrix.report.render.html_parts import esc, table
+from bench_matrix.report.render.plots import Plot
+from bench_matrix.store import CellRecord
+from bench_matrix.workload.driving.margins import OUTCOMES
+
+TITLES = {"latency": "Latency margin ms", "speed": "Speed margin ×", "perception": "Perception margin"}
+NOTES = {"latency": "the largest delay, in ms, each brain step may take (lock-step: exact) with the lap "
+                    "still completed without leaving the road",
+         "speed": "the largest factor on every commanded speed the lap survives",
+         "perception": "the strongest camera perturbation the lap survives (0 to 1: its strength)"}
+INTRO = ("Margins: how far each cell is from failing, each found by bisection on its own lock-step laps "
+         "(docs/closed-loop.md, Margins): a–b: the largest value passed, a, and the next value of the "
+         "search's grid, b, one resolution above, failed; ≥ the limit when it never failed; none when even "
+         "the unchanged lap failed. × baseline: the cell's margin ÷ the fp32 baseline's on the same circuit.")
+PLOT_INCHES = (4.0, 0.35)  # a panel's width, and the height per bar
+
+
+@dataclass(frozen=True)
+class MarginRow:
+    """One cell's margins on one circuit, with the baseline's on the same circuit (None: none stored)."""
+
+    record: CellRecord
+    circuit: str
+    margins: dict[str, dict[str, Any]]
+    baseline: dict[str, dict[str, Any]] | None
+    is_baseline: bool
+
+
+def margin_rows(model: ModelSummary) -> list[MarginRow]:
+    """Every ok cell's margins, in the results table's order, then circuit."""
+    base = _searched(model.baseline) if model.baseline is not None and model.baseline.status == "ok" else {}
+    return [MarginRow(row.record, circuit, margins, base.get(circuit), row.is_baseline)
+            for row in model.rows for circuit, margins in _searched(row.record).items()]
+
+
+def kinds(rows: list[MarginRow]) -> list[str]:
+    """The margins searched for any row, in the order latency, speed, perception."""
+    return [kind for kind in TITLES if any(kind in row.margins for row in rows)]
+
+
+def shown(answer: dict[str, Any] | None) -> str:
+    """A margin as the table shows it: passed–failed, ≥ the limit, or none."""
+    if not isinstance(answer, dict) or answer.get("outcome") not in OUTCOMES:
+        return DASH
+    if answer["outcome"] == "fails_at_start":
+        return "none"
+    if answer["outcome"] == "passes_at_limit":
+        return f"≥ {answer['value']:g}"
+    return f"{answer['value']:g}–{answer['failed_at']:g}"
+
+
+def ratio(answer: dict[str, Any] | None, base: dict[str, Any] | None) -> str:
+    """The cell's margin ÷ the baseline's, ≥ or ≤ where one side is only a lower bound; — where unknown."""
+    value, reference = _value(answer), _value(base)
+    if value is None or reference is None or reference <= 0:
+        return DASH
+    above, below = _at_limit(answer), _at_limit(base)
+    if above and below:
+        return DASH
+    return ("≥ " if above else "≤ " if below else "") + f"{value / reference:.2f}"
+
+
+def spread_lines(rows: list[MarginRow]) -> list[str]:
+    """Per circuit and margin, how far apart the cells are, or that the search could not tell them apart."""
+    lines = []
+    for circuit in dict.fromkeys(row.circuit for row in rows):
+        for kind in kinds(rows):
+            answers = [(row.record.cell.label, row.margins.get(kind)) for row in rows
+                       if row.circuit == circuit]
+            values = sorted((value, label) for label, a in answers if (value := _value(a)) is not None)
+            if len(values) < 2:
+                continue
+            resolution = max(a.get("resolution", 0) for _, a in answers if isinstance(a, dict))
+            (low, lowest), (high, highest) = values[0], values[-1]
+            lines.append(f"{circuit}, {kind}: every cell's margin is {low:g}: alike to within the search's "
+                         f"resolution, {resolution:g}" if low == high else
+                         f"{circuit}, {kind}: from {low:g} ({lowest}) to {high:g} ({highest}), resolution "
+                         f"{resolution:g}")
+    return lines
+
+
+def columns(rows: list[MarginRow]) -> list[tuple[str, str, Callable[[MarginRow], str]]]:
+    """(header, note, renderer) of the margins table's columns."""
+    found: list[tuple[str, str, Callable[[MarginRow], str]]] = [
+        ("Method", "the cell.",
+         lambda row: row.record.cell.label + (" (baseline)" if row.is_baseline else "")),
+        ("Circuit", "the circuit searched on.", lambda row: row.circuit)]
+    for kind in kinds(rows):
+        found += [(TITLES[kind], NOTES[kind], lambda row, k=kind: shown(row.margins.get(k))),
+                  ("× baseline", f"{kind} margin ÷ the baseline's",
+                   lambda row, k=kind: ratio(row.margins.get(k), (row.baseline or {}).get(k)))]
+    found += [("Laps", "laps the searches drove.", lambda row: str(_total(row, "laps"))),
+              ("Search s", "wall seconds of the searches.", lambda row: f"{_total(row, 'wall_s'):.0f}")]
+    return found
+
+
+def markdown_lines(model: ModelSummary, render_table: Callable[[list[str], list[bool], list[list[str]]], str],
+                   escape: Callable[[str], str]) -> list[str]:
+    """The margins table with its notes and how far apart the cells are; empty when none was searched."""
+    rows = margin_rows(model)
+    if not rows:
+        return []
+    shown_columns = columns(rows)
+    return ["### Margins", "", escape(INTRO), "",
+            render_table([escape(h) for h, _, _ in shown_columns], [i > 1 for i in range(len(shown_columns))],
+                         [[escape(render(row)) for _, _, render in shown_columns] for row in rows]),
+            "", *(f"- {escape(line)}" for line in spread_lines(rows)), ""]
+
+
+def html_parts(model: ModelSummary) -> list[str]:
+    """The margins table (notes on hover) and how far apart the cells are."""
+    rows = margin_rows(model)
+    if not rows:
+        return []
+    shown_columns = columns(rows)
+    return ["<h4>Margins</h4>", f"<p>{esc(INTRO)}</p>",
+            table([(h, note) for h, note, _ in shown_columns], [i > 1 for i in range(len(shown_columns))],
+                  [[render(row) for _, _, render in shown_columns] for row in rows]),
+            *(f"<p>{esc(line)}</p>" for line in spread_lines(rows))]
+
+
+def print_terminal(model: ModelSummary, console: Any) -> None:
+    """Print the margins table, if any margin was searched."""
+    rows = margin_rows(model)
+    if rows:
+        from rich.table import Table
+
+        shown_table = Table(title=f"{model.name}: closed-loop margins", title_justify="left")
+        shown_columns = columns(rows)
+        for header, _, _ in shown_columns:
+            shown_table.add_column(header)
+        for row in rows:
+            shown_table.add_row(*(render(row) for _, _, render in shown_columns))
+        console.print(shown_table)
+
+
+def margin_plots(model: ModelSummary, folder: Path) -> list[Plot]:
+    """One plot of every margin per cell and circuit, the baseline's bars hatched; none without margins."""
+    rows = margin_rows(model)
+    if not rows:
+        return []
+    path = folder / f"margins-{model.name}.png"
+    margin_figure(rows).savefig(path, dpi=80, metadata={"Software": None})
+    return [Plot("margins", f"Closed-loop margins: {model.name}", path,
+                 f"Each cell's closed-loop margins on each circuit, the baseline's hatched")]
+
+
+def margin_figure(rows: list[MarginRow]) -> Any:
+    """A panel per margin: a bar per cell and circuit to its margin, a whisker over the resolution (where
+    the margin lies), ▶ past the limit, × where even the unchanged lap failed."""
+    from matplotlib.figure import Figure
+
+    shown_kinds = kinds(rows)
+    figure = Figure(figsize=(PLOT_INCHES[0] * len(shown_kinds), 1.2 + PLOT_INCHES[1] * len(rows)))
+    labels = [f"{row.record.cell.label} · {row.circuit}" for row in rows]
+    for k, kind in enumerate(shown_kinds):
+        axes = figure.add_subplot(1, len(shown_kinds), k + 1)
+        for y, row in enumerate(rows):
+            _bar(axes, y, row.margins.get(kind), row.is_baseline)
+        axes.set_yticks(range(len(rows)), labels if k == 0 else [""] * len(rows), fontsize=7)
+        axes.invert_yaxis()
+        axes.set_title(TITLES[kind], fontsize=9)
+    figure.tight_layout()
+    return figure
+
+
+def _bar(axes: Any, y: int, answer: dict[str, Any] | None, baseline: bool) -> None:
+    value = _value(answer)
+    if value is None:
+        if isinstance(answer, dict) and answer.get("outcome") == "fails_at_start":
+            axes.plot([answer.get("start", 0.0)], [y], "x", color="#d62728")
+        return
+    axes.barh(y, value, color="#7f7f7f" if baseline else "#1f77b4", hatch="//" if baseline else None,
+              edgecolor="black", linewidth=0.4)
+    if _at_limit(answer):
+        axes.plot([value], [y], ">", color="black", markersize=5)
+    else:
+        axes.errorbar([value + answer["resolution"] / 2], [y], xerr=[answer["resolution"] / 2], fmt="none",
+                      ecolor="black", capsize=2, linewidth=0.8)
+
+
+def _searched(record: CellRecord) -> dict[str, dict[str, dict[str, Any]]]:
+    found = record.metrics.others.get("closed_loop_margins")
+    return {c: m for c, m in found.items() if isinstance(m, dict)} if isinstance(found, dict) else {}
+
+
+def _value(answer: dict[str, Any] | None) -> float | None:
+    value = answer.get("value") if isinstance(answer, dict) else None
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
+
+
+def _at_limit(answer: dict[str, Any] | None) -> bool:
+    return isinstance(answer, dict) and answer.get("outcome") == "passes_at_limit"
+
+
+def _total(row: MarginRow, key: str) -> float:
+    return sum(a.get(key, 0) for a in row.margins.values() if isinstance(a, dict))
