@@ -69,11 +69,12 @@ class ClosedLoop(Scenario):
 
     def plan(self, section: ClosedLoopSpec, matrix: Matrix, cell: Cell) -> ClosedLoopPlan | None:
         """The cell's laps when the section selects it (with why its model cannot drive, if so)."""
-        if not section.selects(cell.as_dict()):
+        if not section.selection.selects(cell.as_dict()):
             return None
         model = matrix.model(cell.model)
         dataset = matrix.dataset_of(model)
-        searched = section.margins if section.margins and section.margins.selects(cell.as_dict()) else None
+        margins = section.margins
+        searched = margins if margins and margins.selection.selects(cell.as_dict()) else None
         return ClosedLoopPlan(section, dataset.labels, drive_problem(model, dataset, matrix.task_of(model)),
                               searched)
 

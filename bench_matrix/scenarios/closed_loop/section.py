@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Any
 
-from bench_matrix.matrix.load import Loading, selector
+from bench_matrix.matrix.load import Loading
 from bench_matrix.matrix.spec import DatasetSpec, ModelSpec
 from bench_matrix.matrix.yamlpos import Located, suggest
 from bench_matrix.scenarios.closed_loop.spec import (
@@ -44,13 +44,9 @@ def closed_loop(data: dict[str, Any], loading: Loading) -> ClosedLoopSpec:
     for i, name in enumerate(names):
         if names.index(name) != i:
             report.add(AT + ("circuits", i), f"circuit '{name}' is listed twice; names must be unique")
-    cells = data.get("cells", "all")
-    selected = None if cells == "all" else tuple(selector(AT + ("cells", i), s, loading.known, report)
-                                                 for i, s in enumerate(cells))
-    for i, chosen in enumerate(selected or ()):
+    selection = loading.selection(AT, data)
+    for i, chosen in enumerate(selection.cells or ()):
         _refuse_non_drivers(i, dict(chosen.values), loading.models, loading.dataset, report)
-    exclude = tuple(selector(AT + ("exclude", i), s, loading.known, report)
-                    for i, s in enumerate(data.get("exclude", [])))
     return ClosedLoopSpec(circuits=circuits, modes=tuple(data.get("modes", ClosedLoopSpec.modes)),
                           brain_period_ms=data.get("brain_period_ms", ClosedLoopSpec.brain_period_ms),
                           latency_budget_ms=data.get("latency_budget_ms", ClosedLoopSpec.latency_budget_ms),
@@ -58,18 +54,14 @@ def closed_loop(data: dict[str, Any], loading: Loading) -> ClosedLoopSpec:
                           off_road_limit_s=data.get("off_road_limit_s", ClosedLoopSpec.off_road_limit_s),
                           vehicle=vehicle(data.get("vehicle", "ideal")),
                           margins=margins(data["margins"], names, loading) if "margins" in data else None,
-                          cells=selected, exclude=exclude)
+                          selection=selection)
 
 
 def margins(data: dict[str, Any], circuits: list[str], loading: Loading) -> MarginsSpec:
     """The margins subsection: its searches, circuits (each one of the section's) and cells."""
-    at, report = AT + ("margins",), loading.report
-    cells = data.get("cells", "all")
+    report = loading.report
     return MarginsSpec(searches(data, report), margin_circuits(data, circuits, report),
-                       None if cells == "all" else tuple(selector(at + ("cells", i), s, loading.known, report)
-                                                         for i, s in enumerate(cells)),
-                       tuple(selector(at + ("exclude", i), s, loading.known, report)
-                             for i, s in enumerate(data.get("exclude", []))))
+                       loading.selection(AT + ("margins",), data))
 
 
 def searches(data: dict[str, Any], report: Located) -> tuple[MarginSpec, ...]:

@@ -6,7 +6,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from bench_matrix.matrix.schema import NAME, SELECTION, axis, seconds
-from bench_matrix.matrix.spec import Selector
+from bench_matrix.matrix.spec import Selection
 from bench_matrix.workload.driving.circuits import BUILTIN_CIRCUITS
 from bench_matrix.workload.driving.margins import Knob
 from bench_matrix.workload.driving.perturb import KINDS as PERTURBATIONS
@@ -43,21 +43,11 @@ class MarginsSpec:
 
     searches: tuple[MarginSpec, ...]
     circuits: tuple[str, ...] = ()  # the section's circuits to search on (every one when empty)
-    cells: tuple[Selector, ...] | None = None  # None: every cell the section drives
-    exclude: tuple[Selector, ...] = ()
-
-    def selects(self, cell: dict[str, str]) -> bool:
-        return chosen(cell, self.cells, self.exclude)
+    selection: Selection = Selection()  # of the cells the section drives
 
     def search_dict(self) -> dict[str, Any]:
         """What a cell's margins depend on (selection aside)."""
         return {"searches": [asdict(m) for m in self.searches], "circuits": list(self.circuits)}
-
-
-def chosen(cell: dict[str, str], cells: tuple[Selector, ...] | None, exclude: tuple[Selector, ...]) -> bool:
-    """True when the cell (as a dict) is among `cells` (None: all) and not excluded."""
-    among = cells is None or any(s.matches(cell) for s in cells)
-    return among and not any(s.matches(cell) for s in exclude)
 
 
 # Each margin's knob as the matrix gives it: (start, default limit, default resolution, unit, limit's maximum)
@@ -77,17 +67,12 @@ class ClosedLoopSpec:
     off_road_limit_s: float = 2.0
     vehicle: Response = Response()  # how the car answers its commands (the ideal car by default)
     margins: MarginsSpec | None = None  # none searched by default
-    cells: tuple[Selector, ...] | None = None  # None: every cell
-    exclude: tuple[Selector, ...] = ()
-
-    def selects(self, cell: dict[str, str]) -> bool:
-        """True when the cell (as a dict) is among `cells` and not excluded."""
-        return chosen(cell, self.cells, self.exclude)
+    selection: Selection = Selection()
 
     def drive_dict(self) -> dict[str, Any]:
         """How the cells drive (selection and margins aside: a cell's plan adds its margins); the ideal
         vehicle is left out, so results stored before there was a choice keep their fingerprints."""
-        left_out = ("cells", "exclude", "margins") + (("vehicle",) if self.vehicle == Response() else ())
+        left_out = ("selection", "margins") + (("vehicle",) if self.vehicle == Response() else ())
         return {k: v for k, v in asdict(self).items() if k not in left_out}
 
 
