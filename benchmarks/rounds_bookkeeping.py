@@ -27,7 +27,8 @@ def cell(rng: np.random.Generator, call_ms: float, window_s: float, rounds: int)
     timed = Timed()
     for slot in ((r, j) for r in range(rounds) for j in range(2)):
         timed.add(slot, Window(LATENCY, rng.normal(call_ms, call_ms * 0.01, calls)))
-        timed.add(slot, Window("throughput", rng.normal(call_ms * 32, call_ms * 0.3, max(3, calls // 32)), 32))
+        batches = rng.normal(call_ms * 32, call_ms * 0.3, max(3, calls // 32))
+        timed.add(slot, Window("throughput", batches, 32))
     return timed
 
 
