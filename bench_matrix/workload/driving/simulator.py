@@ -1,6 +1,6 @@
 """Closed-loop driving simulator: a unicycle driven by raw [v, w] on a circuit (answering through its
-response: vehicle.py), a fixed physics step, the front camera rendered from the car's pose at every brain step;
-lock-step or real-time clock. Headless, CPU."""
+response: vehicle.py), a fixed physics step, the front camera rendered from the car's pose at every brain
+step; lock-step or real-time clock. Headless, CPU."""
 
 from __future__ import annotations
 
