@@ -81,15 +81,15 @@ def pin_threads(threads: int) -> None:
 
 
 def exact_fp32() -> None:
-    """Switch TensorFloat-32 off for cuBLAS matmuls and cuDNN convolutions: fp32 on a GPU means IEEE fp32."""
+    """Switch TensorFloat-32 off for cuBLAS matmuls and cuDNN convolutions: fp32 on a GPU means IEEE fp32.
+
+    Through the allow_tf32 flags, which set cuDNN's convolution and RNN precisions together: torch 2.13's
+    newer per-operator flags (cudnn.conv.fp32_precision) left them apart, and every torch.export later in
+    the process (it reads the flags) failed "cuDNN conv and cuDNN RNN have different TF32 flags"."""
     import torch
 
-    if hasattr(torch.backends.cudnn, "conv"):  # torch 2.9+; the allow_tf32 flags are deprecated there
-        torch.backends.cuda.matmul.fp32_precision = "ieee"
-        torch.backends.cudnn.conv.fp32_precision = "ieee"
-    else:
-        torch.backends.cuda.matmul.allow_tf32 = False
-        torch.backends.cudnn.allow_tf32 = False
+    torch.backends.cuda.matmul.allow_tf32 = False
+    torch.backends.cudnn.allow_tf32 = False
 
 
 def place(module: "torch.nn.Module", target: str, precision: str) -> "torch.nn.Module":

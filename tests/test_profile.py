@@ -200,5 +200,9 @@ def test_a_torch_gpu_cell_says_why_it_has_no_profile() -> None:
 
     from bench_matrix_backends._torch import TorchSession
 
-    profile = TorchSession(torch.nn.Linear(2, 2), "cuda", "fp16").profile((), 5)
+    before = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    try:  # a GPU session switches TF32 off for the process: put it back for the tests after this one
+        profile = TorchSession(torch.nn.Linear(2, 2), "cuda", "fp16").profile((), 5)
+    finally:
+        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = before
     assert profile.operators == () and "kernel launches" in profile.fields()["profile_reason"]

@@ -220,19 +220,21 @@ def test_backends_carry_bf16_through_convert_and_load(name: str, source: SourceM
     assert np.abs(got - reference).max() > 1e-4
 
 
-def test_gpu_session_switches_tf32_off_and_says_so() -> None:
-    conv = torch.backends.cudnn.conv if hasattr(torch.backends.cudnn, "conv") else None
-    before = conv.fp32_precision if conv else torch.backends.cudnn.allow_tf32
-    try:
-        session = TorchSession(tiny_models.tiny(), "cuda", "fp16")  # nothing runs: only the settings are checked
-        assert (conv.fp32_precision == "ieee") if conv else (torch.backends.cudnn.allow_tf32 is False)
-        info = session.info()
-        assert info["device"] == "cuda" and info["dtype"] == "float16" and info["tensor_float_32"] is False
-    finally:
-        if conv:
-            conv.fp32_precision = before
-        else:
-            torch.backends.cudnn.allow_tf32 = before
+@pytest.fixture
+def tf32_flags():
+    """The process's TensorFloat-32 flags, put back after the test."""
+    before = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    yield
+    torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = before
+
+
+def test_gpu_session_switches_tf32_off_and_says_so(tf32_flags) -> None:
+    session = TorchSession(tiny_models.tiny(), "cuda", "fp16")  # nothing runs: only the settings are checked
+    assert torch.backends.cudnn.allow_tf32 is False and torch.backends.cuda.matmul.allow_tf32 is False
+    info = session.info()
+    assert info["device"] == "cuda" and info["dtype"] == "float16" and info["tensor_float_32"] is False
+    # torch.export reads the flags: the session left them in a state it can read (conv and RNN together)
+    torch.export.export(tiny_models.tiny().eval(), (torch.zeros(1, 3, 16, 16),), strict=False)
 
 
 # ---- Torch-TensorRT helpers that need no GPU ----------------------------------------------------------------------
