@@ -27,10 +27,6 @@ GPU_PROFILE_REASON = ("torch.profiler's CPU times of a GPU cell are kernel launc
                       "operators yet")
 
 
-def torch_versions() -> dict[str, str]:
-    return installed_versions("torch")
-
-
 def torch_dtype(precision: str) -> "torch.dtype":
     """The torch dtype of a module's parameters and inputs at `precision`."""
     import torch
@@ -209,7 +205,7 @@ class TorchBackend(Backend):
     devices = {"cuda": "cuda"}
 
     def versions(self) -> dict[str, str]:
-        return torch_versions()
+        return installed_versions("torch")
 
     def probe(self, target: str, precision: str) -> str | None:
         if missing := missing_torch():

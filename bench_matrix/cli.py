@@ -94,9 +94,7 @@ def _parser() -> argparse.ArgumentParser:
     report.add_argument("--out", type=Path, default=Path("reports"), help="directory for pages (default: %(default)s)")
     report.add_argument("--run", help="the records of one run (its id, its label, `latest` or `previous`) instead "
                                       "of the newest record of each cell")
-    group = report.add_argument_group("filters (repeat an option or separate values with commas)")
-    for key in VIEW_KEYS:
-        group.add_argument(f"--{key}", action="append", metavar=key.upper(), help=f"only records of this {key}")
+    _filters(report, VIEW_KEYS, "records of")
     add_report_options(report)
     report.set_defaults(handler=_report)
 
@@ -114,10 +112,12 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _filters(parser: argparse.ArgumentParser) -> None:
+def _filters(parser: argparse.ArgumentParser, keys: tuple[str, ...] = FILTER_KEYS,
+             what: str = "cells with") -> None:
+    """A repeatable `--KEY` option for each of `keys`, helped as 'only WHAT this KEY'."""
     group = parser.add_argument_group("filters (repeat an option or separate values with commas)")
-    for key in FILTER_KEYS:
-        group.add_argument(f"--{key}", action="append", metavar=key.upper(), help=f"only cells with this {key}")
+    for key in keys:
+        group.add_argument(f"--{key}", action="append", metavar=key.upper(), help=f"only {what} this {key}")
 
 
 def _values(args: argparse.Namespace, keys: tuple[str, ...]) -> dict[str, frozenset[str]]:

@@ -12,6 +12,7 @@ from pathlib import Path
 # The lowest compute capability each precision needs on an NVIDIA GPU: fp16 arithmetic (Pascal sm_60 runs it,
 # Volta sm_70 on tensor cores), bf16 (Ampere sm_80), int8 inference (sm_61, DP4A).
 MIN_CAPABILITY = {"fp16": (6, 0), "bf16": (8, 0), "int8": (6, 1)}
+CSV_OUTPUT = "--format=csv,noheader,nounits"  # nvidia-smi queries: values only, no header, no units
 
 
 @dataclass(frozen=True)
@@ -28,7 +29,8 @@ class Gpu:
         return f"{self.name} (driver {self.driver}{cc})"
 
 
-def _smi(*args: str) -> str | None:
+def nvidia_smi(*args: str) -> str | None:
+    """What `nvidia-smi ARGS` prints, or None without the tool, when it fails or takes over 20 s."""
     smi = shutil.which("nvidia-smi")
     if not smi:
         return None
@@ -56,9 +58,9 @@ def parse_gpus(csv: str) -> tuple[Gpu, ...]:
 @lru_cache(maxsize=1)
 def gpus() -> tuple[Gpu, ...]:
     """The NVIDIA GPUs the driver reports (empty when there is no GPU or no driver)."""
-    out = _smi("--query-gpu=name,driver_version,memory.total,compute_cap", "--format=csv,noheader,nounits")
+    out = nvidia_smi("--query-gpu=name,driver_version,memory.total,compute_cap", CSV_OUTPUT)
     if out is None:  # drivers before 510 do not know compute_cap
-        out = _smi("--query-gpu=name,driver_version,memory.total", "--format=csv,noheader,nounits")
+        out = nvidia_smi("--query-gpu=name,driver_version,memory.total", CSV_OUTPUT)
     if out is not None:
         return parse_gpus(out)
     proc = Path("/proc/driver/nvidia/gpus")
@@ -73,7 +75,7 @@ def nvidia_gpus() -> tuple[str, ...]:
 @lru_cache(maxsize=1)
 def driver_cuda_version() -> tuple[int, int] | None:
     """The newest CUDA version the installed driver supports (nvidia-smi's 'CUDA Version'), if known."""
-    found = re.search(r"CUDA Version:\s*(\d+)\.(\d+)", _smi() or "")
+    found = re.search(r"CUDA Version:\s*(\d+)\.(\d+)", nvidia_smi() or "")
     return (int(found[1]), int(found[2])) if found else None
 
 

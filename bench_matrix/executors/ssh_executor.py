@@ -149,4 +149,3 @@ class SshExecutor(Executor):
         for link in self.links.values():
             link.close()
         shutil.rmtree(self._control, ignore_errors=True)
-

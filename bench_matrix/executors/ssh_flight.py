@@ -196,4 +196,3 @@ class Flight:
 def _beside(path: Path) -> list[Path]:
     """The files an ONNX model file reads beside it (its external data)."""
     return external_data_files(path) if path.is_file() and file_kind(path) == ("onnx", "onnx") else []
-

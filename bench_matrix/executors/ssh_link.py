@@ -155,4 +155,3 @@ def last_words(stderr: str) -> str:
     """The last line of what ssh or the device's command wrote to stderr."""
     lines = [line.strip() for line in stderr.splitlines() if line.strip() and not line.startswith(PHASE)]
     return lines[-1] if lines else "(nothing on stderr)"
-

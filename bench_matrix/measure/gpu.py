@@ -3,20 +3,13 @@
 from __future__ import annotations
 
 import os
-import shutil
-import subprocess
+
+from bench_matrix.hardware import CSV_OUTPUT, nvidia_smi
 
 
 def _query(*args: str) -> str | None:
-    smi = shutil.which("nvidia-smi")
-    if not smi:
-        return None
-    try:
-        out = subprocess.run([smi, *args, "--format=csv,noheader,nounits"], capture_output=True, text=True,
-                             timeout=20, check=False)
-    except (OSError, subprocess.TimeoutExpired):
-        return None
-    return out.stdout if out.returncode == 0 else None
+    """What nvidia-smi prints for the query `args`, as CSV without header or units; None without it."""
+    return nvidia_smi(*args, CSV_OUTPUT)
 
 
 def process_memory_mib(pid: int | None = None) -> float | None:

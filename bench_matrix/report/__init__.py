@@ -165,4 +165,3 @@ def _pages(stored: Stored, fmt: str, out: Path, console: Console) -> list[Path]:
         print_report(stored.report, console)
     paths = write_pages(stored.report, out, plots) if fmt != "html" else []
     return [*paths, write_html(stored.report, plots, out / "report.html")] if fmt != "md" else paths
-

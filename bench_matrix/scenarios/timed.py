@@ -164,4 +164,3 @@ def _narrower(reached: Width | None, target: float) -> str:
 
 def _rounded(found: dict[str, Any]) -> dict[str, Any]:
     return {k: [round(x, 6) for x in v] if isinstance(v, list) else v for k, v in found.items()}
-

@@ -27,18 +27,14 @@ SHOWN_KEYS = 5  # keys listed in a state_dict mismatch before '... and N more'
 def load_module(source: "SourceModel") -> "torch.nn.Module":
     """A fresh module in eval mode on the CPU; UserError when the file is unsafe or unreadable."""
     if source.format == "torchscript":
-        return _torchscript(source)
+        return load_torchscript(source.path.read_bytes(), source.label)
     if source.format == "torch_export":  # exported in inference mode already; its module refuses .eval()
-        return _exported(source)
+        return load_program(source.path.read_bytes(), source.label).module()
     if source.format == "state_dict":  # forward gets the inputs by name where they are named so
         module = build_from_factory(source.factory or "", source.python_path)
         load_weights(module, source)
         return for_inputs(module.eval(), [spec.name for spec in source.inputs])
     raise ValueError(f"{source.path}: format {source.format!r} is not a PyTorch format")
-
-
-def _torchscript(source: "SourceModel") -> "torch.nn.Module":
-    return load_torchscript(source.path.read_bytes(), source.label)
 
 
 def load_torchscript(data: bytes, label: str) -> "torch.jit.ScriptModule":
@@ -52,11 +48,6 @@ def load_torchscript(data: bytes, label: str) -> "torch.jit.ScriptModule":
         raise ModelFileError(f"{label}: torch {torch.__version__} cannot load this TorchScript "
                              f"archive ({brief(exc)}); save it again with torch.jit.save of this torch "
                              f"version") from None
-
-
-def _exported(source: "SourceModel") -> "torch.nn.Module":
-    """The module of a checked torch.export archive (see load_program)."""
-    return load_program(source.path.read_bytes(), source.label).module()
 
 
 def load_program(data: bytes, label: str) -> "torch.export.ExportedProgram":

@@ -181,5 +181,3 @@ def _disturbed(pair: Pair) -> tuple[str, ...]:
         if phases:
             notes.append(f"{role}: " + " | ".join(f"{name}: {why}" for name, why in phases.items()))
     return tuple(notes)
-
-

@@ -98,10 +98,6 @@ def _ci(row: Row) -> str:
     return DASH if width is None else f"{width * 50:.1f}"
 
 
-def _gpu_mb(m: Measurement) -> float | None:
-    return m.memory.gpu_mb
-
-
 HOST = Column("Host", "the machine that measured the cell (shown when this model's cells come from more "
               "than one).", lambda r: r.record.host or DASH, "")
 VERDICT = Column("Verdict", "against the model's requirements (see Verdict): pass; fail, with each "
@@ -152,8 +148,8 @@ TRAILING: tuple[Column, ...] = (
     Column("Peak RSS\nMiB", "peak resident memory of the process that measured the cell, in MiB.",
            lambda r: fixed(figure(r.record, lambda m: m.memory.peak_rss_mb), 1), THROUGHPUT),
     Column("GPU\nMiB", "GPU cells: GPU memory the measuring process held after its runs, in MiB (see "
-           "docs/metrics.md for how it is read).", lambda r: fixed(figure(r.record, _gpu_mb), 0),
-           THROUGHPUT, optional=True),
+           "docs/metrics.md for how it is read).",
+           lambda r: fixed(figure(r.record, lambda m: m.memory.gpu_mb), 0), THROUGHPUT, optional=True),
     Column("Speed-up", "baseline time ÷ cell time, paired round by round with its 95 % interval "
            "(docs/metrics.md §5; older records: baseline p50 ÷ cell p50): above 1× the cell is faster.",
            lambda r: times(r.speedup) + (f" ±{r.speedup_half:.1%}" if r.speedup_half is not None else ""),

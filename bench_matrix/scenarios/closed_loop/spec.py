@@ -108,7 +108,6 @@ VEHICLE = {
 }
 
 
-
 def _search(unit: str, maximum: float, **extra: Any) -> dict[str, Any]:
     """A margin's search: its limit and resolution (in `unit`), and what else it takes."""
     return {"type": "object", "additionalProperties": False, "properties": {

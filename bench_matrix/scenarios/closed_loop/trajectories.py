@@ -90,8 +90,6 @@ def _road(axes: Any, x: np.ndarray, y: np.ndarray, half_width: float) -> None:
     axes.add_patch(PathPatch(Outline(vertices, codes), facecolor=ROAD, edgecolor="none"))
 
 
-
-
 def _markdown(model: ModelSummary, render_table: Any, escape: Any) -> list[str]:
     return markdown_lines(model, render_table, escape) + margins.markdown_lines(model, render_table, escape)
 

@@ -105,5 +105,4 @@ def print_terminal(model: ModelSummary, console: Any) -> None:
     console.print(table)
 
 
-
 SECTION = Section(markdown_lines, html_parts, print_terminal)  # the stream scenario's section of a report

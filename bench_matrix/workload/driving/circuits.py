@@ -12,7 +12,6 @@ from .circuit import Circuit, Track
 from .layouts import Segment, closed_layout
 from .points import PointCircuit
 
-DEFAULT_CIRCUIT = "simple"
 MIN_AVERAGE_SPEED = 4.0  # m/s: the default time limit of a circuit is its length at this speed
 
 

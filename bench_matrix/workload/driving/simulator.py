@@ -18,7 +18,6 @@ from .texture import ground_texture
 from .vehicle import Car
 
 MODES = ("lock_step", "real_time")
-STOP_REASONS = ("lap_completed", "off_road", "stuck", "time_limit")
 
 
 @dataclass(frozen=True)
