@@ -238,9 +238,12 @@ def test_ctrl_c_on_the_driver_keeps_finished_cells_and_the_run_resumes(onnx_proj
     wait_for(interruptible, "a cell stored and another waiting on the second node", timeout_s=180)
     proc.send_signal(signal.SIGINT)
     output, _ = proc.communicate(timeout=60)
+    # the driver gone, Ray ends its tasks: nothing waits on the second node's slot any more
+    wait_for(lambda: flock_waiters(lock / LOCK_FILE) == 0, "the waiting task ended with its driver",
+             timeout_s=60)
     release(held)
     held.wait(timeout=60)
-    assert proc.returncode == 130 and "interrupted" in output and "Traceback" not in output
+    assert proc.returncode == 130 and "interrupted" in output and "Traceback" not in output, output
     with sqlite3.connect(db) as con:
         [summary] = [json.loads(s) for (s,) in con.execute("SELECT summary FROM runs")]
     kept = [r["key"] for r in _records(db) if r["status"] == "ok"]
