@@ -80,9 +80,8 @@ class Planned:
 
 @dataclass(frozen=True)
 class CellPlan:
-    """A cell decided once, in the parent: what `run` does with it (run, skip or reject, and why), the
-    conversion step its backend performs, the fine-tuning before it and by whom, its baseline cell, its log,
-    the fingerprint of everything that determines its result and the scenarios it runs after latency."""
+    """A cell decided once, in the parent: run, skip or reject and why; its backend's conversion step; its
+    fine-tuning and by whom; its baseline cell, log, result fingerprint and scenarios after latency."""
 
     cell: Cell
     state: PlanState

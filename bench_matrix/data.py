@@ -181,9 +181,8 @@ def data_inputs(info: dict[str, Any], layout: str) -> tuple[TensorSpec, ...]:
 
 def describe(spec: DatasetSpec, layout: str = "nhwc",
              as_is: Sequence[str] = ()) -> dict[str, TensorSpec] | None:
-    """The dataset's inputs as a model in `layout` would see them (`as_is`: arrays passed as they are), read
-    cheaply (headers only, no array loaded) to find mistakes at plan time; None where that needs reading the
-    data (folders, synthetic)."""
+    """The dataset's inputs as a model in `layout` sees them (`as_is`: arrays passed as they are), from
+    headers only, to find mistakes at plan time; None where that needs the data read (folders, synthetic)."""
     stored = _stored(spec)
     if stored is None:
         return None

@@ -65,9 +65,8 @@ def value_range(images: np.ndarray) -> tuple[float, float]:
 
 def check_preprocess(preprocess: Preprocess, inputs: dict[str, np.ndarray],
                      ranges: dict[str, tuple[float, float]], where: str, as_is: Sequence[str] = ()) -> None:
-    """Refuse image preprocessing without images (the inputs `ranges` names; `as_is`: arrays passed as they
-    are), a mean or std that fits no image's channels, and the default scale for images that are not pixels
-    0..255."""
+    """Refuse image preprocessing without images (inputs `ranges` names; `as_is`: arrays passed as is), a mean
+    or std fitting no image's channels, and the default scale on images not pixels 0..255."""
     if not ranges:
         given = [key for key in IMAGE_ONLY if getattr(preprocess, key) is not None]
         passed = f" ({', '.join(as_is)}: in the model's per-sample shape, passed as stored)" if as_is else ""

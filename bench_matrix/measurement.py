@@ -101,9 +101,8 @@ class Speedup(Figures):
 
 @dataclass(frozen=True)
 class RoundsFacts(Figures):
-    """How the cell's rounds went: kept latency rounds, why they stopped, the target, the width reached, the
-    window length, its session processes, its latency windows per process and round (the baseline: more than
-    one) and how the processes differed (its own spread, and the model's pooled)."""
+    """How the cell's rounds went: latency rounds kept, why stopped, target, width reached, window length,
+    processes, latency windows per process and round (baseline: several), process spread (own and model's)."""
 
     OPEN: ClassVar[bool] = True
 

@@ -34,9 +34,8 @@ Prober = Callable[[ProbeJob], Probe]  # runs the probe job on this machine (exec
 
 @dataclass(frozen=True)
 class ModelPlan:
-    """A model decided once: its dataset and task, its inputs (declared or read from its file; None: the
-    dataset's), the cell computing its fp32 reference, the log of its preparation, and the dataset's arrays
-    already in its inputs' per-sample shapes (passed as they are)."""
+    """A model decided once: dataset, task, inputs (declared or from its file; None: the dataset's), fp32
+    reference cell, preparation log, dataset arrays already in per-sample input shape (passed as is)."""
 
     spec: ModelSpec
     dataset: DatasetSpec

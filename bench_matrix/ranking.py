@@ -34,9 +34,8 @@ def rank(cells: Sequence[Ranked], objective: str) -> list[Ranked]:
 
 
 def compare(best: Ranked, other: Ranked, objective: str, paired: bool) -> tuple[float | None, float | None]:
-    """How many times better `best` is than `other` on the objective, and the half-width of that ratio's
-    95 % interval on the log scale (the two intervals' half-widths combined in quadrature; 0 for sizes; None
-    where a figure has no interval)."""
+    """How many times better `best` is than `other` on the objective, and the log-scale half-width of that
+    ratio's 95 % interval (both half-widths in quadrature; 0 for sizes; None where a figure has none)."""
     if objective == "p50" and paired:
         (a, ha), (b, hb) = speedup(best), speedup(other)
         return a / b, math.hypot(ha, hb)

@@ -89,9 +89,8 @@ def _created(cls: Any, where: str, base: type, error: type[PluginError]) -> Any:
 
 @dataclass(frozen=True)
 class BackendEntry:
-    """A registered backend before it is imported: its name, target and distribution ("NAME VERSION");
-    `replaced`: the other registrations of its name, which its class declares it replaces; `clash`: why the
-    name cannot be used (several distributions register it and none declares it replaces the others)."""
+    """A registered backend before import: name, target, distribution ("NAME VERSION"); `replaced`: the name's
+    other registrations its class replaces; `clash`: why unusable (rival distributions, none replacing)."""
 
     name: str
     value: str
@@ -142,9 +141,8 @@ def _replaces(ep: EntryPoint) -> str:
 
 @dataclass(frozen=True)
 class Vocabulary:
-    """What the installed backends declare: each target and precision with the backends naming it, each
-    backend's own options (JSON Schema properties), and the backends that cannot be loaded, with why. The
-    targets come in the order the built-in backends, by name, first declare them, then plugins' sorted."""
+    """What installed backends declare: targets and precisions with their backends, backends' options as JSON
+    Schema properties, unloadable ones (why); targets in built-ins' order (by name), then plugins' sorted."""
 
     targets: dict[str, list[str]]
     precisions: dict[str, list[str]]

@@ -151,9 +151,8 @@ class StoreOutlet:
         self._finished(self._record(p, "failed", reason, started, env=env))
 
     def claim(self, model: str, measuring: list[Measuring], measure: Measure) -> None:
-        """Measure a model's cells holding its store lock (unless --force, those another run stored meanwhile
-        are already stored). A busy lock is waited for only while this run holds none (two runs each waiting
-        for the other's would wait for ever)."""
+        """Measure a model's cells under its store lock (unless --force), skipping those another run stored
+        meanwhile; wait on a busy lock only while holding none (else two runs could deadlock)."""
         if self.force or not measuring:
             measure(measuring)
             return

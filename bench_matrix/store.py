@@ -96,10 +96,8 @@ class RunInfo:
 
 
 class ResultStore:
-    """A results database; every write is committed at once so an interrupted run loses nothing.
-
-    `readonly` opens an existing store without changing it (a store of an earlier format is migrated in
-    memory); `label` names the file in messages."""
+    """A results database, every write committed at once (an interrupted run loses nothing); `readonly` opens
+    an existing store unchanged (an older format migrated in memory); `label` names the file in messages."""
 
     def __init__(self, path: str | Path, readonly: bool = False, label: str = "results file"):
         self.path, self._label = Path(path), label
@@ -187,9 +185,8 @@ class ResultStore:
                              (finished_at, json.dumps(dict(summary)), run_id))
 
     def put(self, record: CellRecord, samples: Mapping[str, bytes] | None = None) -> int:
-        """Append a record to its run (`record.run_id`), or update it when it was stored before (a later pass
-        of the same run); with `samples` (series -> stats.pack_samples bytes) replace its raw latencies.
-        Without, an ok record keeps its stored ones; any other status drops them. Returns the record's id."""
+        """Append a record to its run (`record.run_id`) or update it (a later pass), giving its id; `samples`
+        (series -> stats.pack_samples bytes) replace its raw latencies, else only an ok one keeps them."""
         if record.run_id is None:
             raise ValueError(f"record of {record.cell.key} has no run")
         c = record.cell

@@ -136,9 +136,8 @@ def resize(inputs: Mapping[str, np.ndarray], n: int) -> Inputs:
 
 
 def binding_problem(data: Mapping[str, TensorSpec], model: Sequence[TensorSpec]) -> str | None:
-    """Why the data's arrays cannot feed the model's inputs (a missing input, another shape or dtype), or None.
-
-    A single data array named `x` feeds a single-input model whatever the input's name."""
+    """Why the data's arrays cannot feed the model's inputs (a missing input, another shape or dtype), or
+    None; a single data array named `x` feeds a single-input model whatever the input's name."""
     names = data_names(data, model)
     for spec, name in zip(model, names):
         if name not in data:

@@ -22,9 +22,8 @@ PLAUSIBLE = Limit("plausible", "max", 0.0)  # what an implausible record fails (
 
 @dataclass(frozen=True)
 class Check:
-    """One requirement judged on one cell: its status, the cell's figure, the bound it was held to (max_drop:
-    the baseline's figure moved by the drop), what it says, and how far off it is (a fraction of the
-    bound)."""
+    """One requirement judged on one cell: status, the cell's figure, the bound held to (max_drop: the
+    baseline's figure moved by the drop), what it says, and how far off it is (a fraction of the bound)."""
 
     limit: Limit
     status: str

@@ -21,9 +21,8 @@ PROFILED_CALLS = 2  # calls a profile runs in the kit
 
 
 def check_fetched(outputs: Any, reference: list[np.ndarray], previous: int | None = None) -> list[np.ndarray]:
-    """`outputs` (what predict returned) as fetch must give them: a list with every output, each a finite
-    float32 array of the reference's shape, batch axis first; `previous`: the batch of the session's call
-    before, whose outputs these must not be."""
+    """`outputs` (from predict) as fetch must give them: a list of every output, each finite float32 in the
+    reference's shape, batch first; `previous`: the last call's batch, whose outputs these must not be."""
     if not isinstance(outputs, list) or len(outputs) != len(reference):
         count = len(outputs) if isinstance(outputs, (list, tuple)) else "not a list"
         raise RuleBroken("fetch-returns-every-output",
@@ -148,9 +147,8 @@ def pending_work(session: Session, inputs: Inputs) -> str | None:
 
 
 def check_profile(session: Session, inputs: Inputs, precision: str) -> None:
-    """RuleBroken unless a session implementing Session.profile gives a reason or a profile of the asked calls
-    whose operators come from the vocabulary, whose times fit in the wall-clock time of the profiling, and
-    whose precisions suit the cell (an int8 cell runs some operator at int8, an fp32 one none)."""
+    """RuleBroken unless an implemented Session.profile gives a reason or the asked calls' profile: vocabulary
+    operators, times within wall time, precisions fit for the cell (int8: some int8; fp32: none)."""
     begin = time.perf_counter()
     profile = session.profile(session.prepare(inputs), PROFILED_CALLS)
     wall_ms = (time.perf_counter() - begin) * 1e3

@@ -160,9 +160,8 @@ class Kit:
 
     def run(self, session: Session, inputs: Inputs, wanted: list[np.ndarray],
             allowed: list[np.ndarray]) -> list[np.ndarray]:
-        """The session's outputs on `inputs`, checked as fetch must give them, in the model's order and as
-        this call's, not the call's before (`wanted`: the fp32 reference of these inputs, `allowed`: the
-        precision's bounds)."""
+        """The session's outputs on `inputs`, checked as fetch must give them, in model order, as this call's,
+        not the last's (`wanted`: the inputs' fp32 reference; `allowed`: the precision's bounds)."""
         previous = self.ran(session, count(inputs), wanted)
         try:
             outputs = session.predict(inputs)
@@ -195,9 +194,8 @@ class Kit:
         return self._once(("reloaded", case), lambda: self.load(case))
 
     def fresh_info(self, case: Case) -> dict[str, Any]:
-        """The case's first artifact loaded in a fresh process: its info() and, on the CPU, the share of
-        samples in which more threads ran than asked while it executed the large batch ({"error": ...} if
-        that failed); one process serves every case loaded so far whose info() here shows other threads."""
+        """The case's first artifact in a fresh process: info() and, on CPU, its `oversubscribed` share
+        (else {"error": ...}); one process serves all loaded cases whose info() here shows other threads."""
         self.loaded(case)
         if case.id not in self._fresh:
             scratch = self.root / "fresh"
@@ -213,9 +211,8 @@ class Kit:
         return self._fresh[case.id]
 
     def oversubscribed(self, case: Case) -> float | None:
-        """In this process: the share of samples in which more threads ran than asked while the case's
-        session executed the large batch; None off the CPU, for a model not sampled, or where the system does
-        not tell."""
+        """In this process, the share of samples with more threads running than asked while the case's session
+        ran the large batch; None off the CPU, for an unsampled model, or where the system does not tell."""
         if not self._sampled(case):
             return None
         session, large = self.loaded(case).session, self.model(case.framework, case.model).large

@@ -43,9 +43,8 @@ THREADS = 1
 
 @dataclass(frozen=True)
 class KitModel:
-    """One model as a backend gets it, with the inputs the kit feeds it and the framework's own fp32 outputs
-    on `eval` and `large` (the calibration samples start with the `eval` ones: int8 results differ by
-    rounding only)."""
+    """One model as a backend gets it, with the kit's inputs and the framework's fp32 outputs on `eval` and
+    `large` (calibration starts with the `eval` samples: int8 results differ by rounding only)."""
 
     name: str
     source: SourceModel

@@ -165,9 +165,8 @@ class BackendConformance:
                         f"the fp32 reference at batch {n} (max_batch {LARGE})")
 
     def test_each_call_gives_its_own_outputs(self, case: Case, conformance_kit: Kit) -> None:
-        """Two calls of a second session: the large batch, then its samples in reverse order (another sample
-        at every place, in a batch of the same size, so a reused buffer is the same one); the second call
-        gives its own outputs, not the first's, and the first call's arrays stay as they were."""
+        """A second session called on the large batch, then on it reversed (same size: a reused buffer is the
+        same); the second call gives its own outputs, and the first call's arrays stay as they were."""
         model, backwards = conformance_kit.model(case.framework, case.model), slice(None, None, -1)
         session = conformance_kit.reloaded(case)
         allowed = bounds(self._tolerance(case.precision), model.large_reference)

@@ -34,9 +34,8 @@ class Entry:
 
 
 class OpenAnswers:
-    """The answers still open among a model's cells of `task` (`baseline`: its baseline's key; `references`:
-    a cell's speed-up paired against another); `evaluated` holds each cell's fields measured before its
-    rounds, filled as its session is opened."""
+    """The answers still open among a model's cells of `task` (`baseline`: its key; `references`: a cell's
+    speed-up paired against another); `evaluated`: each cell's pre-rounds fields, filled as sessions open."""
 
     def __init__(self, requirements: Requirements, task: str, baseline: str | None, settings: RoundsSettings,
                  evaluated: Mapping[str, dict[str, Any]], references: Mapping[str, str] | None = None):

@@ -204,9 +204,8 @@ class RayExecutor(Executor):
         return Ended(flight.work, (flight.work.job,), (), reason, env=env, where=flight.node)
 
     def close(self) -> None:
-        """Disconnect: Ray kills the tasks of a driver that left. No `ray.cancel` first: after a Ctrl-C in
-        `ray.wait`, Ray 2.52 aborts the driver on a cancel (exit 1, 'Tried to complete task that was not
-        pending')."""
+        """Disconnect: Ray kills a departed driver's tasks. No `ray.cancel` first: after a Ctrl-C in
+        `ray.wait`, Ray 2.52 aborts on one (exit 1, 'Tried to complete task that was not pending')."""
         self._flights.clear()
         self.ray.shutdown()
 

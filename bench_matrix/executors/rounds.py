@@ -67,10 +67,8 @@ def measure_in_rounds(job: RoundsJob, workdir: Path, logs: Path, on_phase: Calla
 
 
 class _Sessions:
-    """The job's sessions: each cell's processes started together (they load side by side) when the scheduler
-    asks and the cell evaluated in its first; once its rounds are done, the cell finished there (its
-    scenarios run: under `hold`, the machine's timing lock, when one of them is timed) and every process
-    closed."""
+    """The job's sessions: a cell's processes start together when the scheduler asks, the cell evaluated in
+    the first; after its rounds it finishes there (scenarios run, under `hold` if one is timed), all close."""
 
     def __init__(self, job: RoundsJob, workdir: Path, logs: Path, on_phase: Callable[[str], None],
                  hold: Callable[[], AbstractContextManager]):

@@ -24,9 +24,8 @@ def shipped_folder(ws: Workspace, key: str) -> Path:
 
 def pack(path: Path, beside: Sequence[Path] = (), keep: Callable[[str], bool] = lambda name: True
          ) -> tuple[str, bytes]:
-    """A file or folder (of its own files, those whose name it would `keep`), with the files `beside` it that
-    it reads (an ONNX model's external data), as tar bytes (no times or owners: the same content packs to
-    the same bytes), and their SHA-256."""
+    """A file or folder (its files `keep` accepts), with the files `beside` it that it reads (an ONNX model's
+    external data), as tar bytes without times or owners (same content, same bytes), and their SHA-256."""
     def bare(info: tarfile.TarInfo) -> tarfile.TarInfo | None:
         inside = info.name.split("/")
         return _bare(info) if len(inside) != 2 or keep(inside[1]) else None

@@ -178,9 +178,8 @@ class ConvertJob(Job):
 
 @dataclass(frozen=True)
 class MeasureJob(Job):
-    """One cell of a RoundsJob: its converted artifact, loaded in a session process of its own and kept there
-    while the executor times it in windows; then evaluated against the labels and the baseline's outputs
-    (the latency scenario) and run through the cell's other planned scenarios."""
+    """One cell of a RoundsJob: its artifact, loaded in its own session process that the executor times in
+    windows, then evaluated against labels and baseline outputs (latency) and its other scenarios."""
 
     name = "measure"
     function = "bench_matrix.jobs.measure:open_session"  # a Served session: windows on demand, then finish
@@ -209,10 +208,8 @@ class MeasureJob(Job):
 
 @dataclass(frozen=True)
 class RoundsJob(Job):
-    """Measure a model's converted cells on one machine together, in interleaved rounds (docs/metrics.md §5):
-    the executor keeps each cell's session loaded in its own process and owns the clock; the speed-ups are
-    paired against `baseline` (a cell's `id`) when it is among the cells, or as `references` says; the rounds
-    serve the answers the model's `requirements` ask (None: every cell to the same precision)."""
+    """Measure a model's cells in interleaved rounds (docs/metrics.md §5), the executor timing each cell's
+    session in its own process; speed-ups paired against `baseline` (a cell's `id`), or by `references`."""
 
     name = "measure"
     function = "bench_matrix.executors.rounds:measure_in_rounds"
@@ -222,7 +219,7 @@ class RoundsJob(Job):
     logs: tuple[str, ...]  # each cell's log file name, in the folder of the work's log
     baseline: str | None = None
     references: tuple[tuple[str, str], ...] = ()  # (id, the id its speed-up is paired against instead)
-    requirements: Requirements | None = None
+    requirements: Requirements | None = None  # what the rounds answer (None: every cell to one precision)
 
     def reads(self) -> tuple[Path, ...]:
         return tuple(dict.fromkeys(p for job in self.cells for p in job.reads()))

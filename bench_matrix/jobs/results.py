@@ -24,9 +24,8 @@ class Result:
 
 @dataclass(frozen=True)
 class Probe(Result):
-    """The probe job's findings: each backend described, the ruling on each combination and fine-tuning, the
-    inputs model files declare (None: not declared, or unreadable), the parameters of factories' forward, and
-    the fixed batch sizes model files declare (path -> input name -> size)."""
+    """Probe findings: backends, rulings (combinations, fine-tuning), model files' declared inputs (None:
+    undeclared/unreadable) and fixed batch sizes (path -> input -> size), factories' forward parameters."""
 
     backends: dict[str, dict[str, Any]]
     rulings: dict[RulingKey, Ruling]

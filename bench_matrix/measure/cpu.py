@@ -114,9 +114,8 @@ def _read(path: Path, binary: bool = False) -> str | bytes:
 
 
 def this_cpu() -> tuple[Cpu, str | None]:
-    """This machine's CPU as this process sees it, and why it is emulated (None on real hardware). Emulated,
-    the features are the emulated CPU's, from the auxiliary vector: /proc/cpuinfo is the host's, or written
-    for the board."""
+    """This machine's CPU as this process sees it, and why it is emulated (None on real hardware); emulated,
+    its features come from the auxiliary vector (/proc/cpuinfo is the host's, or written for the board)."""
     machine = platform.machine()
     cpu = parse_cpuinfo(str(_read(CPUINFO)), machine)
     emulated = emulation(machine, str(_read(KERNEL_ARCH)) or None, cpu.arch)

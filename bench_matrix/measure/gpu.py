@@ -32,11 +32,8 @@ def device_memory_mib() -> float | None:
 
 
 class GpuMemory:
-    """The GPU memory a cell's process held at its peak, read after the runs: every runtime here (torch's caching
-    allocator, ONNX Runtime's arena, TensorFlow's BFC allocator, compiled engines) keeps what it reserved, so
-    the holding after the timed runs and the accuracy pass is the peak reservation. Falls back to GPU 0's
-    memory in use minus what was in use before the model was loaded when the driver does not list the
-    process."""
+    """A cell's process's peak GPU memory, read after the runs (every runtime here keeps what it reserved); if
+    the driver does not list the process, GPU 0's memory in use less that before the model loaded."""
 
     def __init__(self) -> None:
         self._before = device_memory_mib()

@@ -88,9 +88,8 @@ def waiting_message(directory: Path, waited_s: float = 0.0) -> str:
 
 
 def store_lock(store: Path, model: str, block: bool, on_wait: Callable[[], None]) -> int | None:
-    """Take the host-wide lock a run holds while it measures `model` into `store` (from its rounds until its
-    records are stored); the descriptor whose closing releases it, or None where it is busy and not `block`.
-    `on_wait()` is called before blocking."""
+    """Take the host-wide lock held while measuring `model` into `store` (rounds until records stored): the
+    descriptor whose closing frees it, or None if busy and not `block`; `on_wait()` runs before blocking."""
     name = hashlib.sha256(f"{store.resolve()}\0{model}".encode()).hexdigest()[:20]
     lock = _open_lock(_shared_dir(lock_dir()) / f"store-{name}.lock")
     try:

@@ -121,9 +121,8 @@ def check(window: Callable[[float], float], seconds: float, rounds: Rounds = Rou
           clock: Callable[[], float] | None = None, read: Callable[[], Reading] = read_counts,
           sysfs: Path = SYSFS_CPU, loadavg: Path = Path("/proc/loadavg"), cpus: tuple[int, ...] | None = None
           ) -> Check:
-    """Time `window(window_s)` (a window's median, ms) for `seconds` (at least 3 windows), then read the
-    machine's facts (`cpus`: whose SMT siblings to read, by default every CPU this process may use); the
-    clock, the readings and the files are the check's to inject."""
+    """Time `window(window_s)` (a window's median, ms) for `seconds` (≥ 3 windows), then read machine facts
+    (`cpus`: whose SMT siblings; default: all this process may use); clock, readings, files injectable."""
     import time
 
     clock = clock or time.perf_counter

@@ -72,9 +72,8 @@ class Spread:
 
 
 def process_spread(levels: Mapping[Slot, float]) -> Spread | None:
-    """The spread of a cell's processes from its log levels by slot, as a random effect: the variance of
-    each process's mean offset from the rounds' means (the drift a round shared cancels) less what the
-    windows' own noise puts into it; None with fewer than 2 processes or 2 rounds."""
+    """A cell's process spread (a random effect) from its log levels by slot: variance of each process's mean
+    offset from round means (shared drift cancels) less window noise; None under 2 processes or rounds."""
     means = _round_means(levels)
     offsets = _offsets(levels, means)
     rounds = len(means)
@@ -133,9 +132,8 @@ def log_levels(values: Mapping[Slot, float]) -> dict[Slot, float]:
 
 
 def steady(levels: Mapping[Slot, float], rate: bool = False) -> dict[Slot, float]:
-    """A cell's log levels (times; `rate`s: samples per second) without the windows a neighbour slowed: above
-    the fastest within NEAR rounds by STRAY, or the cell's fastest by APART (each at least SPREADS times the
-    windows' own spread); from STEPS steps between windows on."""
+    """Log levels (times; `rate`s: samples/s) less windows a neighbour slowed: STRAY over the fastest within
+    NEAR rounds, or APART over the cell's fastest (each ≥ SPREADS window spreads); needs STEPS steps."""
     if len(_steps(levels)) < STEPS:
         return dict(levels)
     sign = -1.0 if rate else 1.0
@@ -156,9 +154,8 @@ def steady(levels: Mapping[Slot, float], rate: bool = False) -> dict[Slot, float
 
 def level_interval(value: float, levels: Mapping[Slot, float], model: Spread | None,
                    spread: float = 1.0, noise: float = 0.0) -> Interval | None:
-    """`value` with the 95 % interval of its log level: the rounds' part (the spread of the per-round means,
-    at least `noise`, a window level's own variance) and the processes' (the cell's moderated spread ÷ its
-    processes), `spread` times as wide; None with fewer than 2 rounds or a non-positive figure."""
+    """`value`, its log level's 95 % interval ×`spread`: rounds' part (round means' spread, ≥ `noise`, a
+    window level's variance) plus processes' (moderated spread ÷ processes); None: < 2 rounds or value ≤ 0."""
     means = _round_means(levels)
     if value <= 0 or len(means) < 2:
         return None
@@ -169,9 +166,8 @@ def level_interval(value: float, levels: Mapping[Slot, float], model: Spread | N
 
 def paired_interval(baseline: Mapping[Slot, float], cell: Mapping[Slot, float],
                     model: Spread | None) -> Interval | None:
-    """Baseline ÷ cell from their log levels, paired by round (the ratio of their per-round means over the
-    rounds both have, geometric mean), with the rounds' part and both cells' process parts; None with fewer
-    than 2 such rounds."""
+    """Baseline ÷ cell from their log levels, paired by round (geometric mean of per-round mean ratios over
+    shared rounds), with the rounds' part and both cells' process parts; None below 2 such rounds."""
     base, mine = _round_means(baseline), _round_means(cell)
     ratios = [base[r] - mine[r] for r in sorted(set(base) & set(mine))]
     if len(ratios) < 2:
@@ -206,10 +202,8 @@ def medians(series: Mapping[Slot, np.ndarray]) -> dict[Slot, float]:
 
 def p50_interval(series: Mapping[Slot, np.ndarray], model: Spread | None = None,
                  levels: Mapping[Slot, Level] | None = None) -> Interval | None:
-    """The pooled median of every window (the stored samples') with the interval a rerun's would fall in:
-    `level_interval`'s of the steady per-window medians, RERUN times as wide, never narrower than the
-    windows' own median error (two rounds can agree to the nanosecond); `levels`: the windows' `Level`s,
-    where already known."""
+    """All windows' pooled median with a rerun's interval: `level_interval` of the steady window medians
+    ×RERUN, ≥ the windows' own median error (rounds may agree to the ns); `levels`: known `Level`s."""
     if not series:
         return None
     pooled_median = float(np.median(np.concatenate([np.asarray(v, dtype=np.float64)

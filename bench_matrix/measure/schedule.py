@@ -61,9 +61,8 @@ LOOSE = 0.05  # the precision a cell whose answer is settled leaves at, unless t
 
 @dataclass(frozen=True)
 class RoundsSettings:
-    """When rounds stop: every interval within ±`target` after `min_rounds` (`asked`: the user's target, which
-    every cell must reach, else the loose default), or `budget_s` spent (or `max_rounds`); a cell whose
-    windows were disturbed more than `disturbed_share` of the time is marked; each window's length."""
+    """When rounds stop: all intervals within ±`target` after `min_rounds` (`asked`: the user's, binding every
+    cell), or `budget_s`/`max_rounds` spent; a cell disturbed over `disturbed_share` is marked; `window_s`."""
 
     min_rounds: int = 5
     max_rounds: int = 200
@@ -183,10 +182,8 @@ class Answers(Protocol):
 
 
 class Rounds:
-    """Runs the rounds of a model's cells; `rng` orders each round, `clock` (seconds) measures the budget,
-    `hold` is held around each group's rounds (the machine's timing lock), `on_round` hears each round
-    begin; `references` pairs a cell's speed-up against another cell than the baseline; `answers` keeps the
-    cells whose answer is open in the rounds (None: every cell leaves once narrow)."""
+    """Runs the rounds of a model's cells: `rng` orders each, `clock` (s) times the budget, `hold` (the timing
+    lock) wraps each group's, `on_round` hears each begin; `references`: pairings other than the baseline."""
 
     def __init__(self, settings: RoundsSettings, rng: random.Random | None = None,
                  clock: Callable[[], float] = time.monotonic,
@@ -195,7 +192,7 @@ class Rounds:
                  references: Mapping[str, str] | None = None, answers: Answers | None = None):
         self.settings, self.rng, self.clock = settings, rng or random.Random(), clock
         self.hold, self.on_round, self.references = hold, on_round, dict(references or {})
-        self.answers = answers
+        self.answers = answers  # keeps cells with an open answer in the rounds (None: all leave once narrow)
         self.number = 0  # rounds run so far, over every group (the baseline's rounds are numbered so)
         self.orders: list[tuple[str, ...]] = []  # each round's cells in the order timed (one per visit)
 
@@ -249,9 +246,8 @@ class Rounds:
         return still
 
     def visits(self, live: Mapping[str, Cell], baseline: str | None) -> dict[str, int]:
-        """How often a round visits each process of each cell: once, and a cell that n others are paired
-        against (the baseline) √n times, rounded: each of their speed-ups shares its level (Dunnett's
-        allocation: the variance of n comparisons with one control is least at √n times its samples)."""
+        """Per-round visits to each process of a cell: 1, or round(√n) if n others pair against it, as all
+        share its level (Dunnett: n comparisons with one control vary least at √n× its samples)."""
         against = Counter(reference for key in live
                           if (reference := self.references.get(key, baseline)) in live and reference != key)
         return {key: max(1, round(math.sqrt(against[key]))) for key in live}
@@ -284,9 +280,8 @@ class Rounds:
 def measure_groups(keys: list[str], baseline: str | None, open_session: Callable[[str], Cell],
                    close: Callable[[str, Cell], None], memory_mb: float,
                    rounds: Rounds) -> dict[str, Timed]:
-    """Time `keys` in groups that fit `memory_mb` of resident memory (the baseline, opened first, in every
-    group); each group's share of the budget is its share of the cells. `open_session` loads a cell's
-    processes, `close` ends them once its rounds are done (the baseline's after the last group)."""
+    """Time `keys` in groups within `memory_mb` resident, the baseline (opened first) in each, budget split by
+    cells; `open_session` loads a cell's processes, `close` ends them after its rounds (baseline's last)."""
     timed = {key: Timed() for key in keys}
     base = _opened(baseline, open_session, timed) if baseline in timed else None
     waiting = [key for key in keys if key != baseline]

@@ -8,10 +8,8 @@ from pathlib import Path
 
 
 def artifact_size(directory: Path, cache: Path | None = None, partial: Path | None = None) -> dict[str, int]:
-    """size_bytes (sum of all files) and size_gzip_bytes (sum of each file gzipped at level 9). With `cache`, the
-    result is kept there (written at `partial` first) and reused while every file keeps its name, size and
-    mtime: gzip -9 of a pruned 65 MB model takes ~40 s, and re-measuring a cached artifact should not repeat
-    it."""
+    """size_bytes (all files' sum) and size_gzip_bytes (each file's gzip -9, summed); kept in `cache` (via
+    `partial`), reused while all files keep name, size and mtime (gzip -9 of a pruned 65 MB model: ~40 s)."""
     files = sorted(p for p in directory.rglob("*") if p.is_file())
     stamp = [[str(p.relative_to(directory)), p.stat().st_size, p.stat().st_mtime_ns] for p in files]
     if cache is not None and cache.is_file():

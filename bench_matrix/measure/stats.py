@@ -26,18 +26,15 @@ def latency_summary(durations_ns: np.ndarray) -> dict[str, float | list[float] |
 
 
 def median_ranks(n: int, confidence: float = CONFIDENCE) -> tuple[int, int] | None:
-    """0-based ranks (lo, hi) of the order statistics bounding the median's distribution-free interval.
-
-    The count of samples below the true median is Binomial(n, 1/2), so [x(k), x(n-k+1)] (1-based) covers it
-    with probability 1 - 2 P(X <= k-1); k is the largest rank keeping that at least `confidence`. None when
-    even [min, max] falls short (n < 6 at 95 %)."""
+    """0-based ranks (lo, hi) of the median's distribution-free interval [x(k), x(n-k+1)], k the largest with
+    1 - 2 P(X ≤ k-1) ≥ `confidence` (X ~ Binomial(n, 1/2)); None if [min, max] falls short (n < 6 at 95 %)."""
     if n < 1:
         return None
     half = np.arange(1, n // 2 + 1, dtype=np.float64)
     log_choose = np.concatenate(([0.0], np.cumsum(np.log((n - half + 1) / half))))  # log C(n, j), j <= n/2
-    cdf = np.cumsum(np.exp(log_choose - n * np.log(2.0)))  # P(X <= j)
+    cdf = np.cumsum(np.exp(log_choose - n * np.log(2.0)))  # P(X <= j), X: samples below the median
     k = int(np.searchsorted(cdf, (1 - confidence) / 2, side="right"))  # count of j with P(X <= j) <= alpha/2
-    return None if k == 0 else (k - 1, n - k)
+    return None if k == 0 else (k - 1, n - k)  # [x(k), x(n-k+1)] (1-based) as 0-based ranks
 
 
 def median_interval(values: np.ndarray, confidence: float = CONFIDENCE) -> tuple[float, float] | None:

@@ -41,9 +41,8 @@ class View:
 
 @dataclass(frozen=True)
 class Stored:
-    """What a report is made of, read from a results store: the records a view selected, their summary, the
-    raw latencies and batch durations (ms) of the ok ones by record id, and the requirements runs stored (by
-    matrix path)."""
+    """A report's material from a results store: the records a view selected, their summary, the ok ones' raw
+    latencies and batch durations (ms) by record id, and the runs' stored requirements (by matrix path)."""
 
     records: list[CellRecord]
     report: Report

@@ -48,9 +48,8 @@ class Windows(Protocol):
 
 
 class Scenario:
-    """A scenario selectable from the matrix: its section's schema, typed reading and per-cell plan, the
-    figures its requirements bound, and where its report section is (the report's Section protocol); a core
-    one (CORE) has no section, no plan (so no part in a fingerprint), and `timer` and `evaluate` instead."""
+    """A matrix scenario: its section's schema, typed reading, per-cell plan, figures its requirements bound,
+    report Section; a CORE one has no section or plan (no fingerprint part) but `timer` and `evaluate`."""
 
     name: ClassVar[str]  # the matrix section's key, the Planned's name and its record fields' prefix
     title: ClassVar[str]  # the plan view's column

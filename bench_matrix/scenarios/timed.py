@@ -26,9 +26,8 @@ SAMPLED = {LATENCY: "latency_ms", E2E: "latency_ms_e2e", THROUGHPUT: "batch_ms"}
 
 def figures(timed: Timed, baseline: Timed | None, settings: RoundsSettings, limits: Limits,
             spreads: Mapping[str, Spread | None]) -> dict[str, Any]:
-    """The cell's timed record fields from its rounds (`baseline`: the baseline cell's, for the paired
-    speed-up; None for the baseline itself or without one; `spreads`: the model's pooled process spread by
-    kind). Cheap enough to ask every round: each window's median is computed once."""
+    """The cell's timed record fields from its rounds (`baseline`: for the paired speed-up, None for itself or
+    none; `spreads`: the model's pooled process spread by kind); cheap every round: medians cached."""
     series = {kind: found for kind in SAMPLED if (found := timed.series(kind))}
     fields: dict[str, Any] = {name: _latency(series[kind], spreads.get(kind), timed.levels(kind))
                               for kind, name in SERIES.items() if kind in series}
@@ -50,9 +49,8 @@ def raw_samples(timed: Timed) -> dict[str, bytes]:
 
 def _rounds(timed: Timed, settings: RoundsSettings, series: dict[Slot, np.ndarray], model: Spread | None,
             ratio: Interval | None) -> tuple[dict[str, Any], Width | None]:
-    """The record's `rounds` (how many, why they stopped, the precision asked for and the width reached: the
-    wider of the run's p50 and the speed-up, the answer still open, the processes and how they differed, how
-    one window differed from the next, the windows left out as `strayed`), the width reached, its floor."""
+    """The record's `rounds` (count, why stopped, precision asked, width reached: wider of p50 and speed-up,
+    open answer, processes and spread, window-to-window spread, `strayed` windows), width reached, floor."""
     every = log_levels(timed.medians(LATENCY))
     levels = steady(every)
     own, noise = moderated(process_spread(levels), model), window_spread(levels)
@@ -115,9 +113,8 @@ def _throughput(windows: dict[Slot, Window], model: Spread | None) -> dict[str, 
 
 def _interference(timed: Timed, settings: RoundsSettings, limits: Limits,
                   reached: Width | None) -> dict[str, Any]:
-    """Flagged when more than `settings.disturbed_share` of a kind's windows were disturbed; each kind's
-    windows, the dropped ones, and why a figure is marked (disturbed, or its interval wider than the
-    target)."""
+    """Flagged when over `settings.disturbed_share` of a kind's windows were disturbed; each kind's windows,
+    those dropped, and why a figure is marked (disturbed, or its interval wider than the target)."""
     phases = {}
     for kind in (*SERIES, THROUGHPUT):
         total, dropped = timed.count(kind)
@@ -134,9 +131,8 @@ def _interference(timed: Timed, settings: RoundsSettings, limits: Limits,
 
 
 def _wide(timed: Timed, settings: RoundsSettings, reached: Width | None) -> str | None:
-    """Why the latency figures are marked when their intervals stayed wider than the target the user asked
-    for, and what would narrow them (a cell that left the rounds narrow is not marked: its final width pools
-    the model's process spread over every cell's rounds); None unless the user asked for a target."""
+    """Why latency figures stayed wider than the user's target and what would narrow them (not for a cell
+    leaving the rounds narrow: its final width pools every cell's process spread); None if no target asked."""
     narrow = timed.stop == "width" or (reached is not None and reached.reached <= settings.target)
     if not settings.asked or narrow:
         return None

@@ -61,9 +61,8 @@ class SourceModel:
         return f"{self.origin} (fine-tuned copy {self.path})" if self.origin else str(self.path)
 
     def load(self) -> Any:
-        """A fresh framework object (never shared between strategies): nn.Module, ScriptModule, Keras model,
-        or the ONNX file's path (bench-matrix reads it with sources.onnx_file.load_onnx); ModelFileError when
-        the file is unsafe or unreadable."""
+        """A fresh framework object (never shared by strategies): nn.Module, ScriptModule, Keras model or ONNX
+        file path (read by sources.onnx_file.load_onnx); ModelFileError for an unsafe or unreadable file."""
         try:
             return self._load()
         except (FileNotFoundError, PermissionError, IsADirectoryError) as exc:

@@ -37,9 +37,8 @@ def forward_parameters(module: "torch.nn.Module") -> tuple[Parameter, ...]:
 
 
 def by_name(params: Sequence[Parameter], names: Sequence[str]) -> bool:
-    """Whether forward gets the inputs by name: each is one of its named parameters, and they are not exactly
-    its parameters in this order (forward has others, such as a Hugging Face model's inputs_embeds=None, which
-    tracers would otherwise see as inputs too)."""
+    """Whether forward gets the inputs by name: each is a named parameter, yet not exactly its parameters in
+    order (others, e.g. a Hugging Face inputs_embeds=None, tracers would see as inputs too)."""
     named = {p.name for p in params if p.kind in NAMED}
     exactly = _in_order(params, names) and len(names) == len(params)
     return not exactly and all(name in named for name in names)
@@ -95,9 +94,8 @@ def for_inputs(module: "torch.nn.Module", names: Sequence[str]) -> "torch.nn.Mod
 
 
 def keyword_forward(module: "torch.nn.Module", names: Sequence[str]) -> "torch.nn.Module":
-    """`module` itself, its class swapped for one whose forward takes `names` positionally and passes them on
-    by name: its state_dict keys stay, and tracers (jit, FX, torch.export, ONNX) see one named input each and
-    none of forward's other parameters (they keep their defaults)."""
+    """`module`, its class swapped for one whose forward takes `names` positionally and passes them by name;
+    state_dict keys stay, and tracers (jit, FX, torch.export, ONNX) see only these (others keep defaults)."""
     base = type(module)
     code = (f"def forward(__module, {', '.join(names)}):\n"
             f"    return __forward(__module, {', '.join(f'{name}={name}' for name in names)})\n")

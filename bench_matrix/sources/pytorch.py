@@ -51,9 +51,8 @@ def load_torchscript(data: bytes, label: str) -> "torch.jit.ScriptModule":
 
 
 def load_program(data: bytes, label: str) -> "torch.export.ExportedProgram":
-    """The program of a checked torch.export archive. Read with torch's archive loader, not torch.export.load,
-    which falls back to unpickling an older format without weights_only. The guard code the archive carries is
-    dropped (module() would exec it); the guards torch derives from the program's shape ranges stay."""
+    """A checked torch.export archive's program, read by torch's archive loader, not torch.export.load (may
+    unpickle without weights_only); guard code dropped (module() would exec it), shape-range guards kept."""
     import torch
     from torch.export.pt2_archive._package import load_pt2
 
@@ -157,9 +156,8 @@ def use_engine(engine: str | None = None) -> str:
 
 @contextmanager
 def quiet_torch(captured: bool = False) -> Iterator[None]:
-    """Silence torch's deprecation notices (torch.ao, torch.jit, the TorchScript ONNX exporter); `captured`
-    also silences the tracer's notes on tensor-to-Python conversions, harmless in an already captured graph
-    (an FX-quantised model's scales, a torch.export program's shape guards)."""
+    """Silence torch's deprecation notices (torch.ao, torch.jit, TorchScript ONNX exporter); `captured`: also
+    the tracer's tensor-to-Python notes, harmless once captured (FX-quantised scales, export shape guards)."""
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", category=DeprecationWarning)
         warnings.filterwarnings("ignore", category=FutureWarning)

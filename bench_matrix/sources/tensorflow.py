@@ -56,9 +56,8 @@ def thread_settings() -> dict[str, int]:
 
 
 def load_keras(source: "SourceModel") -> Any:
-    """A fresh Keras model from a .keras file, an .h5 file or a Keras SavedModel directory, loaded safely:
-    checked first (no Lambda layer, no object from outside Keras, no SavedModel operation that calls Python or
-    touches files), then read in `safe_mode`."""
+    """A fresh Keras model from a .keras or .h5 file or a Keras SavedModel, checked first (no Lambda layer, no
+    non-Keras object, no SavedModel op calling Python or touching files), then read in `safe_mode`."""
     k = keras()
     from tf_keras.src.saving.serialization_lib import SafeModeScope
 

@@ -193,9 +193,8 @@ def _safe_node(node: ast.AST, literals: set[int]) -> bool:
 
 
 def check_torchscript(data: bytes, label: str) -> None:
-    """ModelFileError unless this TorchScript archive's code calls only torch's own, file-free operators.
-    TorchScript runs no Python, but its code runs on load (__setstate__) and on every call, and may call any
-    registered operator: ATen's save writes any file the user may write."""
+    """ModelFileError unless this TorchScript archive's code calls only torch's own file-free operators: it
+    runs on load (__setstate__) and each call, and may call any operator (ATen's save writes any file)."""
     import torch
 
     try:

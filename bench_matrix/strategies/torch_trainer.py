@@ -219,9 +219,8 @@ def _loss(out: Any, labels: torch.Tensor, task: str) -> torch.Tensor:
 def _fit(module: nn.Module, options: dict[str, Any], data: _Data, generator: torch.Generator,
          on_epoch: Callable[[int, int], None] | None = None,
          after_step: Callable[[], None] | None = None) -> dict[str, Any]:
-    """Adam on the task's loss in train mode (BatchNorm running statistics kept, not re-estimated from a small
-    fine-tuning set) for `epochs` (fractions allowed) of shuffled mini-batches. on_epoch(k, K) runs before
-    each of the K (started) epochs; after_step after each optimiser step."""
+    """Adam on the task's loss in train mode, BatchNorm statistics kept, for `epochs` (may be fractional) of
+    shuffled mini-batches; on_epoch(k, K) before each of the K started epochs, after_step after each step."""
     import torch
 
     epochs, lr, batch_size = _training(options)

@@ -168,9 +168,8 @@ def _shift_p_value(before: np.ndarray, after: np.ndarray) -> float:
 
 
 def _tail_p_value(before: np.ndarray, after: np.ndarray) -> float:
-    """Fisher's exact test, two-sided, on how many samples of each side lie above the pooled 99th percentile:
-    whether the slowest 1 % come from one side more than chance allows (a shift of the median does not
-    count; a handful of samples never reaches significance)."""
+    """Two-sided Fisher's exact test on each side's samples above the pooled 99th percentile: whether the
+    slowest 1 % favour one side beyond chance (not a median shift; a handful never reaches significance)."""
     tail = np.percentile(np.concatenate([before, after]), 99)
     above = [int(np.sum(before > tail)), int(np.sum(after > tail))]
     if sum(above) == 0:

@@ -36,10 +36,8 @@ class Candidate:
 
 @dataclass(frozen=True)
 class Recommendation:
-    """For one model, target (and host): the best passing cell by `objective` and the runner-up; `ratio`: how
-    many times better the best is on the objective, with its 95 % interval where the figures have one;
-    `distinguishable`: that interval excludes 1 (None: no interval); `closest`: when none passes; `failed`:
-    the cells that failed to run there (never judged)."""
+    """Per model, target (and host): best passing cell by `objective`, runner-up, `ratio` times better, 95 %
+    `ratio_ci` (`distinguishable`: excludes 1; None: none), `closest` (none passes), `failed` (unjudged)."""
 
     model: str
     target: str

@@ -63,9 +63,8 @@ def machine_key(others: Mapping[str, Any]) -> tuple[Any, ...]:
 
 
 def best_peaks(rows: Sequence[Row]) -> dict[tuple[Any, ...], dict[str, Any]]:
-    """Per machine, the best of its records' peaks (measure.peak.best_of). A kept peak measured again grows
-    by each measurement and keeps its first one's time: of one such line, the record with the most
-    measurements holds the others."""
+    """Per machine, the best of its records' peaks (measure.peak.best_of); a re-measured kept peak grows and
+    keeps its first time, so of one such line the record with the most measurements holds the others."""
     lines: dict[tuple[Any, ...], dict[str, Any]] = {}
     for row in rows:
         peak = {k: v for k, v in row.record.metrics.others.items() if k.startswith("machine_")}
@@ -97,9 +96,8 @@ def model_work(rows: Sequence[Row]) -> dict[str, Any]:
 
 
 def roofline(row: Row, among: Sequence[Row] = ()) -> Roofline | None:
-    """The cell on the roofline: its model's work (its own record's, else that of `among`'s, the same model)
-    held to the best peak of its machine among its own and `among`'s records; None where the work, the peak
-    or a p50 (batch 1) is missing, or a figure is not a finite positive number."""
+    """The cell on the roofline: model work (its record's, else `among`'s) held to its machine's best peak in
+    its and `among`'s records; None if work, peak or p50 (batch 1) is missing, or not finite and > 0."""
     others, p50 = row.record.metrics.others, number(row.record.metrics.latency.p50)
     if row.record.cell.target != "cpu":  # the peak is the CPU's
         return None

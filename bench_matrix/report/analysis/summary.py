@@ -219,9 +219,8 @@ def asked(record: CellRecord) -> bool | None:
 
 
 def wide_phases(record: CellRecord) -> dict[str, str]:
-    """The timed phases whose interval stayed wider than the precision the user asked for, with why (none
-    where the user asked for none); for records from before the rounds, those whose kept attempt still
-    drifted (from before interference was measured: by stability)."""
+    """Timed phases whose interval stayed wider than the precision asked, with why (none if none asked); for
+    pre-rounds records, those whose kept attempt drifted (by stability before interference was measured)."""
     if asked(record) is False:
         return {}
     if record.metrics.interference is not None:

@@ -58,9 +58,8 @@ def times(value: float | None) -> str:
 
 @dataclass(frozen=True)
 class Column:
-    """One results-table column: header ("\n" breaks it in the terminal), footnote, renderer and group.
-
-    A narrow terminal splits the table by group; columns of group "" are in every part."""
+    """One results-table column: header ("\n" breaks it in the terminal), footnote, renderer and group (a
+    narrow terminal splits the table by group; group "" is in every part)."""
 
     header: str
     note: str

@@ -31,10 +31,8 @@ CSV_COLUMNS = (*CELL_COLUMNS, "status", "reason", "size_bytes", "size_mib", "siz
 
 
 def report_json(records: list[CellRecord], report: Report) -> str:
-    """The JSON report: each model's requirements, the recommendations, the answers left open, how noisy
-    the machine was (`noise`, null without the rounds' window spreads), how far other runs put its
-    artifacts' p50s (`reruns`), and every record (`CellRecord.to_json()`, in store order) with its verdict
-    where it has one."""
+    """The JSON report: requirements, recommendations, open answers, machine noise (`noise`; null without
+    window spreads), other runs' artifact p50s (`reruns`), records (to_json, store order) with verdicts."""
     verdicts = {_identity(row.record): row.verdict for model in report.models for row in model.rows}
     found = []
     for record in records:

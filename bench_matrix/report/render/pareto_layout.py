@@ -50,9 +50,8 @@ def reference_sizes(sizes: Sequence[float]) -> list[float]:
 
 def place_labels(anchors: Sequence[tuple[float, float]], radii: Sequence[float],
                  sizes: Sequence[tuple[float, float]], bounds: Box, gap: float) -> list[tuple[float, float]]:
-    """The centre of each label of size (w, h) beside its marker (centre `anchors[i]`, radius `radii[i]`),
-    chosen in order: the nearest candidate spot inside `bounds` clear of the labels placed so far and of every
-    other marker; failing that, the one with the fewest collisions."""
+    """Each label's (w, h) centre beside its marker (`anchors[i]`, radius `radii[i]`), in order: the nearest
+    spot in `bounds` clear of placed labels and other markers, else the one with the fewest collisions."""
     placed: list[Box] = []
     for i, ((x, y), radius, size) in enumerate(zip(anchors, radii, sizes)):
         others = [(ax, ay, r) for j, ((ax, ay), r) in enumerate(zip(anchors, radii)) if j != i]

@@ -47,9 +47,8 @@ class SessionBrain:
 
 
 def drive_all(loaded: Loaded, plan: ClosedLoopPlan) -> Outcome:
-    """The record's closed-loop fields: `closed_loop` {circuit: {mode: lap}}, `closed_loop_circuits`
-    {circuit: reference line and size} and the margins searched (`closed_loop_margins`); or
-    `closed_loop_skipped` with the reason the model cannot drive."""
+    """Closed-loop record fields: `closed_loop` {circuit: {mode: lap}}, `closed_loop_margins` searched and
+    `closed_loop_circuits` {circuit: reference line, size}; or `closed_loop_skipped` (why it cannot drive)."""
     if plan.skip:
         return Outcome({"closed_loop_skipped": plan.skip})
     job = loaded.job

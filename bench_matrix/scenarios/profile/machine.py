@@ -31,10 +31,8 @@ def work_fields(backend: str, meta: dict[str, Any]) -> dict[str, Any]:
 
 
 def peak_fields(workspace: Workspace, threads: int) -> dict[str, Any]:
-    """The machine's `machine_*` fields at `threads`: measured here the first time (a few seconds) and kept;
-    one measured while other work disturbed it (as a timed window would be) says so and is measured again
-    by the next profiled cells, up to ATTEMPTS times, keeping the best; `machine_reason` where it cannot be
-    measured."""
+    """`machine_*` fields at `threads`: measured once here (a few s) and kept; if other work disturbed it, it
+    says so and later profiled cells remeasure it, up to ATTEMPTS times, best kept; else `machine_reason`."""
     cpu, _ = this_cpu()
     host = host_name()
     kept = workspace.peak(digest([host, cpu.model, threads]))

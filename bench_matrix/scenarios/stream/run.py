@@ -56,9 +56,8 @@ class Timeline:
 
 def serve(call: Callable[[Any], Any], inputs: list[Any], frames: int, period_ns: int, policy: str,
           clock: Clock) -> Timeline:
-    """Serve `frames` frames, one every `period_ns`, each with the next of `inputs`, without the garbage
-    collector: `queue` serves every frame in turn (until BEHIND_LIMIT times the stream's duration), `skip`
-    drops the frames that arrived while a call ran."""
+    """Serve `frames` frames, one every `period_ns`, each the next of `inputs`, GC off: `queue` serves each in
+    turn (up to BEHIND_LIMIT × the stream's duration), `skip` drops frames arriving during a call."""
     done: list[tuple[int, int, int]] = []
     gc_was_enabled = gc.isenabled()
     gc.disable()

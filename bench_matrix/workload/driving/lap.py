@@ -59,10 +59,8 @@ def gate_crossings(x0: float, y0: float, x1: float, y1: float, centres: np.ndarr
 
 
 class Checkpoints:
-    """The reference lap's checkpoints: `count` gates evenly spaced along the centreline, each across the road
-    (half its width each side of the reference line), the last one on the start line. A gate counts when the
-    car crosses it forwards, after the last counted one and at most WINDOW_M ahead of it; a skipped gate never
-    counts."""
+    """`count` gates across the road, evenly along the reference lap's centreline, the last on the start line;
+    one counts if crossed forwards within WINDOW_M after the last counted: a skipped one never does."""
 
     def __init__(self, circuit: Track, spacing: float):
         self.count = max(4, math.ceil(circuit.length / spacing))

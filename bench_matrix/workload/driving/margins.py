@@ -90,9 +90,8 @@ def lap_passes(circuit: Track, brain: Brain, settings: SimSettings) -> bool:
 
 def lap_probe(kind: str, circuit: Track, brain: Brain, settings: SimSettings, perception: str = "mix",
               seed: int = 0) -> Callable[[float], bool]:
-    """Whether a lock-step lap passes with the knob `kind` at a value: latency (ms the brain is deemed to
-    take), speed (factor on every commanded speed), perception (strength of the `perception` perturbation
-    of every frame, drawn from `seed`)."""
+    """Whether a lock-step lap passes with knob `kind` at a value: latency (ms the brain is deemed to take),
+    speed (× commanded speeds), perception (`perception` perturbation strength per frame, from `seed`)."""
     lock_step = replace(settings, mode="lock_step", latency_budget_s=0.0)
     if kind == "latency":
         return lambda ms: lap_passes(circuit, brain, replace(lock_step, latency_budget_s=ms / 1e3))
