@@ -192,5 +192,5 @@ def test_margins_of_a_trained_pilotnet_are_searched_with_its_own_session(trained
     out = cli(trained, "report", "--format", "md", "--out", str(trained / "pages"))
     assert out.returncode == 0, out.stderr
     page = (trained / "pages" / "pilotnet.md").read_text()
-    assert "### Margins" in page and "| onnxruntime none fp32 | oval |" in page
+    assert "### Closed-loop margins" in page and "| onnxruntime none fp32 | oval |" in page
     assert (trained / "pages" / "plots" / "margins-pilotnet.png").read_bytes()[:4] == b"\x89PNG"

@@ -9,16 +9,13 @@ from typing import Any
 from bench_matrix.cell import Cell
 from bench_matrix.matrix.requirements import Requirements
 from bench_matrix.report.analysis.summary import summarize
-from bench_matrix.scenarios.closed_loop.margin_report import margin_plots, markdown_lines
+from bench_matrix.report.render.markdown import block_lines
+from bench_matrix.scenarios.closed_loop.margin_report import blocks, margin_plots
 from bench_matrix.store import CellRecord
 from bench_matrix.verdict import FAIL, PASS, judge
 
 BASE = Cell("m", "pytorch", "pytorch", "none", "fp32", "cpu")
 INT8 = Cell("m", "pytorch", "onnxruntime", "ptq_static", "int8", "cpu")
-
-
-def md_table(headers: list[str], numeric: list[bool], rows: list[list[str]]) -> str:
-    return "\n".join("| " + " | ".join(row) + " |" for row in [headers, *rows])
 
 
 def answer(outcome: str, value: float | None, resolution: float = 10.0) -> dict[str, Any]:
@@ -55,7 +52,7 @@ def test_the_margins_table_sets_each_cell_beside_the_baseline(tmp_path: Path) ->
     records = [record(BASE, latency=answer("found", 200.0), speed=answer("found", 1.6, 0.05)),
                record(INT8, latency=answer("found", 150.0), speed=answer("passes_at_limit", 2.5, 0.05))]
     (model,) = summarize(records, {"m": {"baseline_key": BASE.key}}, {}).models
-    page = "\n".join(markdown_lines(model, md_table, str))
+    page = "\n".join(line for block in blocks(model) for line in block_lines(block))
     assert "| Method | Circuit | Latency margin ms | × baseline | Speed margin × | × baseline |" in page
     assert "| pytorch none fp32 (baseline) | hairpin | 200–210 | 1.00 | 1.6–1.65 | 1.00 | 14 | 24 |" in page
     assert "| onnxruntime ptq_static int8 | hairpin | 150–160 | 0.75 | ≥ 2.5 | ≥ 1.56 | 14 | 24 |" in page
@@ -68,6 +65,6 @@ def test_the_margins_table_sets_each_cell_beside_the_baseline(tmp_path: Path) ->
 def test_cells_the_search_cannot_tell_apart_are_said_to_be_alike() -> None:
     records = [record(BASE, latency=answer("found", 200.0)), record(INT8, latency=answer("found", 200.0))]
     (model,) = summarize(records, {"m": {"baseline_key": BASE.key}}, {}).models
-    page = "\n".join(markdown_lines(model, md_table, str))
+    page = "\n".join(line for block in blocks(model) for line in block_lines(block))
     alike = "- hairpin, latency: every cell's margin is 200: alike to within the search's resolution, 10"
     assert alike in page

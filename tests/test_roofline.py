@@ -19,7 +19,8 @@ from bench_matrix.measure.work import onnx_work
 from bench_matrix.report.analysis.roofline import best_peaks, model_work, roofline
 from bench_matrix.report.analysis.summary import Row, summarize
 from bench_matrix.scenarios.profile.plots import profile_plots
-from bench_matrix.scenarios.profile.report import print_terminal
+from bench_matrix.report.render.terminal import print_block
+from bench_matrix.scenarios.profile.report import blocks
 from bench_matrix.store import CellRecord
 from bench_matrix.tensors import TensorSpec
 from tiny_models import conv_gemm
@@ -104,7 +105,7 @@ def test_a_clock_that_does_not_move_gives_no_rate() -> None:
 
 
 def record(precision: str, p50: float | None = 1.0, profiled: bool = True, strategy: str | None = None,
-           **others: Any) -> CellRecord:
+           timed: bool = True, **others: Any) -> CellRecord:
     """An ok cell of model m; profiled: with a conv/gemm profile, the work and a peak."""
     strategy = strategy or ("none" if precision == "fp32" else "ptq_dynamic")
     cell = Cell("m", "onnx", "onnxruntime", strategy, precision, "cpu")
@@ -118,7 +119,8 @@ def record(precision: str, p50: float | None = 1.0, profiled: bool = True, strat
                "machine_measured_at": "2026-12-07T05:00:00+00:00"}
     profile = {"profile_calls": 5, "profile_ms": 1.0, "profile_operators": ops, **machine} if profiled else {}
     return CellRecord(cell=cell, status="ok", env={"host": "h"},
-                      metrics={"latency_ms": {"p50": p50, "p99": 2.0}, **profile, **others})
+                      metrics={**({"latency_ms": {"p50": p50, "p99": 2.0}} if timed else {}), **profile,
+                               **others})
 
 
 def row(found: CellRecord) -> Row:
@@ -141,7 +143,8 @@ def test_the_roofline_bound_is_the_lower_of_the_ceiling_and_intensity_times_band
     assert roofline(row(on_gpu)) is None
     assert model_work([row(record("fp32", work_bytes=0))]) == {}  # never a division by zero
     for broken in (record("fp32", p50=None), record("fp32", p50=math.nan), record("fp32", work_bytes=0),
-                   record("fp32", machine_flops={}), record("fp32", profiled=False)):
+                   record("fp32", machine_flops={}), record("fp32", profiled=False),
+                   record("fp32", timed=False)):
         assert roofline(row(broken)) is None
 
 
@@ -162,7 +165,7 @@ def test_the_section_shows_the_short_form_and_the_plots_and_nothing_without_a_pr
                     machine_disturbed="busy", machine_measured_at="later")  # lower: held to the best
     model = summarize([record("fp32"), record("fp32", strategy="other"), slower], infos, {}).models[0]
     console = Console(file=io.StringIO(), width=250)
-    print_terminal(model, console)
+    print_block(model, *blocks(model), console)
     text = console.file.getvalue()
     assert "Top kinds" in text and "conv fp32 60 %, matmul int8 30 %, quant int8 10 %" in text
     assert "50.0 (fp32)" in text and "25.0 (int8)" in text  # 1e11 of 2e11; 2e11 of 8e11
@@ -174,5 +177,5 @@ def test_the_section_shows_the_short_form_and_the_plots_and_nothing_without_a_pr
     assert [p.kind for p in plots] == ["profile", "roofline"] and all(p.path.stat().st_size for p in plots)
     bare = summarize([record("fp32", profiled=False)], infos, {}).models[0]
     console = Console(file=io.StringIO(), width=250)
-    print_terminal(bare, console)
+    assert blocks(bare) == []
     assert console.file.getvalue() == "" and profile_plots(bare, tmp_path / "bare") == []

@@ -98,7 +98,8 @@ def model_work(rows: Sequence[Row]) -> dict[str, Any]:
 def roofline(row: Row, among: Sequence[Row] = ()) -> Roofline | None:
     """The cell on the roofline: model work (its record's, else `among`'s) held to its machine's best peak in
     its and `among`'s records; None if work, peak or p50 (batch 1) is missing, or not finite and > 0."""
-    others, p50 = row.record.metrics.others, number(row.record.metrics.latency.p50)
+    latency, others = row.record.metrics.latency, row.record.metrics.others
+    p50 = number(latency.p50) if latency else None
     if row.record.cell.target != "cpu":  # the peak is the CPU's
         return None
     work = model_work([row, *among])

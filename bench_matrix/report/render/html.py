@@ -12,7 +12,7 @@ from bench_matrix.report.render.columns import DIFFERENT_ENVIRONMENTS, cell_name
 from bench_matrix.report.render.html_parts import SCRIPT, STYLE, Html, esc, plot_html, table
 from bench_matrix.report.render.noise_line import noise_line
 from bench_matrix.report.render.plots import Plot
-from bench_matrix.report.render.sections import sections
+from bench_matrix.report.render.sections import Block, section_blocks
 from bench_matrix.report.render.text import (
     HEADLINE_NOTE,
     NO_REASON,
@@ -87,13 +87,24 @@ def _overview(report: Report) -> str:
     return table(headers, numeric, rows)
 
 
+def block_parts(block: Block) -> list[str]:
+    """A section's block: its heading, intro, table (when it has items; notes on hover), its lines."""
+    heading = f"h{block.level + 1}"
+    parts = [f"<{heading}>{esc(block.title)}</{heading}>", f"<p>{esc(block.intro)}</p>"]
+    if block.items:
+        parts.append(table([(c.header, c.note) for c in block.columns], [c.numeric for c in block.columns],
+                           [[c.render(item) for c in block.columns] for item in block.items]))
+    return parts + [f"<p>{esc(line)}</p>" for line in block.lines]
+
+
 def _model_section(index: int, model: ModelSummary, plots: Sequence[Plot]) -> str:
     parts = [f'<section id="{_anchor(index)}">', f"<h2>{esc(model.name)}</h2>",
              f'<p class="meta">{esc(model_line(model, str))}</p>', f"<p>{esc(accuracy_line(model))}</p>",
              *_notes(model), "<h3>Results</h3>", _results(model)]
     if plots:
         parts += ["<h3>Plots</h3>", *(plot_html(plot) for plot in plots)]
-    parts += [*(part for s in sections() for part in s.html(model)), *_skipped(model), *_failed(model),
+    parts += [*(part for block in section_blocks(model) for part in block_parts(block)), *_skipped(model),
+              *_failed(model),
               f"<details><summary>Environment of {esc(model.name)}</summary>{_environment(model.environment)}"
               "</details>", "</section>"]
     return "\n".join(parts)

@@ -16,7 +16,7 @@ from bench_matrix.report.render.columns import (DASH, DIFFERENT_ENVIRONMENTS, Co
                                                 model_columns, shown)
 from bench_matrix.report.render.noise_line import noise_line
 from bench_matrix.report.render.plots import Plot
-from bench_matrix.report.render.sections import sections
+from bench_matrix.report.render.sections import Block, section_blocks
 from bench_matrix.report.render.text import (
     HEADLINE_NOTE,
     accuracy_line,
@@ -108,7 +108,7 @@ def model_page(model: ModelSummary, plots: Sequence[Plot], out_dir: Path) -> str
     else:
         lines += ["No cell of this model produced a result.", ""]
     lines += _plots(plots, out_dir)
-    lines += [line for s in sections() for line in s.markdown(model, _table, _escape)]
+    lines += [line for block in section_blocks(model) for line in block_lines(block)]
     lines += _skipped(model)
     if model.failed:
         lines += [f"## Failed ({len(model.failed)})", ""]
@@ -182,6 +182,16 @@ def _header(column: Column) -> str:
 def _table(headers: list[str], numeric: list[bool], rows: list[list[str]]) -> str:
     align = ["---:" if n else ":---" for n in numeric]
     return "\n".join("| " + " | ".join(cells) + " |" for cells in [headers, align, *rows])
+
+
+def block_lines(block: Block) -> list[str]:
+    """A section's block: its heading, intro, table (when it has items) with its column notes, its lines."""
+    lines = [f"{'#' * block.level} {_escape(block.title)}", "", _escape(block.intro), ""]
+    if block.items:
+        lines += [_table([_header(c) for c in block.columns], [c.numeric for c in block.columns],
+                         [[_escape(c.render(item)) for c in block.columns] for item in block.items]),
+                  "", "Columns:", "", *(f"- **{_escape(h)}**: {_escape(n)}" for h, n in block.notes()), ""]
+    return lines + [f"- {_escape(line)}" for line in block.lines] + ([""] if block.lines else [])
 
 
 def _reason_cell(reason: str | None) -> str:

@@ -22,7 +22,7 @@ from bench_matrix.report.render.columns import (
     shown,
 )
 from bench_matrix.report.render.noise_line import noise_line
-from bench_matrix.report.render.sections import sections
+from bench_matrix.report.render.sections import Block, section_blocks
 from bench_matrix.report.render.text import (
     accuracy_line,
     baseline_note,
@@ -110,8 +110,8 @@ def _print_model(model: ModelSummary, console: Console) -> None:
         console.print(Text(f"Wide (~): {line}", style="yellow"))
     if model.rows:
         console.print(*results_tables(model, console))
-    for section in sections():
-        section.terminal(model, console)
+    for block in section_blocks(model):
+        print_block(model, block, console)
     if model.skipped:
         console.print(_skipped_table(model))
     if model.failed:
@@ -186,3 +186,20 @@ def environment_panel(env: Environment, title: str) -> Panel:
     headline = [Text(f"⚠ {DIFFERENT_ENVIRONMENTS}", style="bold yellow")] if env.warnings else []
     warnings = headline + [Text(f"  • {warning}", style="yellow") for warning in env.warnings]
     return Panel(Group(grid, *warnings), title=title, title_align="left")
+
+
+def print_block(model: ModelSummary, block: Block, console: Console) -> None:
+    """A section's block: its table (`brief`'s columns where given), each column as wide as its widest
+    figure, then its lines."""
+    shown = block.brief if block.brief is not None else block.columns
+    rendered = [[column.render(item) for column in shown] for item in block.items]
+    if rendered:
+        table = Table(title=f"{model.name}: {block.title}", title_justify="left")
+        for k, column in enumerate(shown):
+            table.add_column(column.header, justify="right" if column.numeric else "left",
+                             min_width=max(cell_len(cells[k]) for cells in rendered))
+        for cells in rendered:
+            table.add_row(*cells)
+        console.print(table)
+    for line in block.lines:
+        console.print(line, highlight=False, markup=False, soft_wrap=True)

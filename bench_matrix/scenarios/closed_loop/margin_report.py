@@ -3,15 +3,14 @@ beside the baseline's and their ratio, how far apart the cells are, and a plot o
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from bench_matrix.report.analysis.summary import ModelSummary
-from bench_matrix.report.render.columns import DASH
-from bench_matrix.report.render.html_parts import esc, table
+from bench_matrix.report.render.columns import DASH, Column
 from bench_matrix.report.render.plots import Plot
+from bench_matrix.report.render.sections import Block
 from bench_matrix.store import CellRecord
 from bench_matrix.workload.driving.margins import OUTCOMES
 
@@ -91,59 +90,26 @@ def spread_lines(rows: list[MarginRow]) -> list[str]:
     return lines
 
 
-def columns(rows: list[MarginRow]) -> list[tuple[str, str, Callable[[MarginRow], str]]]:
-    """(header, note, renderer) of the margins table's columns."""
-    found: list[tuple[str, str, Callable[[MarginRow], str]]] = [
-        ("Method", "the cell.",
-         lambda row: row.record.cell.label + (" (baseline)" if row.is_baseline else "")),
-        ("Circuit", "the circuit searched on.", lambda row: row.circuit)]
+def columns(rows: list[MarginRow]) -> list[Column]:
+    """The margins table's columns: the cell, the circuit, each margin searched and its ratio, the cost."""
+    found = [Column("Method", "the cell.",
+                    lambda row: row.record.cell.label + (" (baseline)" if row.is_baseline else ""), ""),
+             Column("Circuit", "the circuit searched on.", lambda row: row.circuit, "")]
     for kind in kinds(rows):
-        found += [(TITLES[kind], NOTES[kind], lambda row, k=kind: shown(row.margins.get(k))),
-                  ("× baseline", f"{kind} margin ÷ the baseline's",
-                   lambda row, k=kind: ratio(row.margins.get(k), (row.baseline or {}).get(k)))]
-    found += [("Laps", "laps the searches drove.", lambda row: str(_total(row, "laps"))),
-              ("Search s", "wall seconds of the searches.", lambda row: f"{_total(row, 'wall_s'):.0f}")]
-    return found
+        found += [Column(TITLES[kind], NOTES[kind], lambda row, k=kind: shown(row.margins.get(k)), "margin"),
+                  Column("× baseline", f"{kind} margin ÷ the baseline's", lambda row, k=kind: ratio(
+                      row.margins.get(k), (row.baseline or {}).get(k)), "margin")]
+    return [*found, Column("Laps", "laps the searches drove.", lambda row: str(_total(row, "laps")), "cost"),
+            Column("Search s", "wall seconds of the searches.", lambda row: f"{_total(row, 'wall_s'):.0f}",
+                   "cost")]
 
 
-def markdown_lines(model: ModelSummary, render_table: Callable[[list[str], list[bool], list[list[str]]], str],
-                   escape: Callable[[str], str]) -> list[str]:
-    """The margins table with its notes and how far apart the cells are; empty when none was searched."""
+def blocks(model: ModelSummary) -> list[Block]:
+    """The margins block with how far apart the cells are; none when no margin was searched."""
     rows = margin_rows(model)
     if not rows:
         return []
-    shown_columns = columns(rows)
-    return ["### Margins", "", escape(INTRO), "",
-            render_table([escape(h) for h, _, _ in shown_columns], [i > 1 for i in range(len(shown_columns))],
-                         [[escape(render(row)) for _, _, render in shown_columns] for row in rows]),
-            "", *(f"- {escape(line)}" for line in spread_lines(rows)), ""]
-
-
-def html_parts(model: ModelSummary) -> list[str]:
-    """The margins table (notes on hover) and how far apart the cells are."""
-    rows = margin_rows(model)
-    if not rows:
-        return []
-    shown_columns = columns(rows)
-    return ["<h4>Margins</h4>", f"<p>{esc(INTRO)}</p>",
-            table([(h, note) for h, note, _ in shown_columns], [i > 1 for i in range(len(shown_columns))],
-                  [[render(row) for _, _, render in shown_columns] for row in rows]),
-            *(f"<p>{esc(line)}</p>" for line in spread_lines(rows))]
-
-
-def print_terminal(model: ModelSummary, console: Any) -> None:
-    """Print the margins table, if any margin was searched."""
-    rows = margin_rows(model)
-    if rows:
-        from rich.table import Table
-
-        shown_table = Table(title=f"{model.name}: closed-loop margins", title_justify="left")
-        shown_columns = columns(rows)
-        for header, _, _ in shown_columns:
-            shown_table.add_column(header)
-        for row in rows:
-            shown_table.add_row(*(render(row) for _, _, render in shown_columns))
-        console.print(shown_table)
+    return [Block("Closed-loop margins", INTRO, columns(rows), rows, spread_lines(rows), level=3)]
 
 
 def margin_plots(model: ModelSummary, folder: Path) -> list[Plot]:

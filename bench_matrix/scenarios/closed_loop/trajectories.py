@@ -12,8 +12,7 @@ from bench_matrix.report.analysis.summary import ModelSummary
 from bench_matrix.report.render.plots import Plot
 from bench_matrix.report.render.sections import Section
 from bench_matrix.scenarios.closed_loop import margin_report as margins
-from bench_matrix.scenarios.closed_loop.report import (MODE_NAMES, driven_records, html_parts, markdown_lines,
-                                                      plot_name, print_terminal)
+from bench_matrix.scenarios.closed_loop.report import MODE_NAMES, blocks, driven_records, plot_name
 from bench_matrix.store import CellRecord
 
 PANEL_INCHES = 4.0
@@ -90,14 +89,5 @@ def _road(axes: Any, x: np.ndarray, y: np.ndarray, half_width: float) -> None:
     axes.add_patch(PathPatch(Outline(vertices, codes), facecolor=ROAD, edgecolor="none"))
 
 
-def _markdown(model: ModelSummary, render_table: Any, escape: Any) -> list[str]:
-    return markdown_lines(model, render_table, escape) + margins.markdown_lines(model, render_table, escape)
-
-
-def _terminal(model: ModelSummary, console: Any) -> None:
-    print_terminal(model, console)
-    margins.print_terminal(model, console)
-
-
-SECTION = Section(_markdown, lambda model: html_parts(model) + margins.html_parts(model), _terminal,
+SECTION = Section(lambda model: blocks(model) + margins.blocks(model),
                   lambda model, folder: trajectory_plots(model, folder) + margins.margin_plots(model, folder))

@@ -14,7 +14,7 @@ from bench_matrix.report.analysis.roofline import Roofline, best_peaks, machine_
 from bench_matrix.report.analysis.summary import ModelSummary, Row
 from bench_matrix.report.render.plots import MARKERS, Plot, file_stem, new_figure, save_figure
 from bench_matrix.report.render.sections import Section
-from bench_matrix.scenarios.profile.report import html_parts, markdown_lines, print_terminal, profiled
+from bench_matrix.scenarios.profile.report import blocks, profiled
 
 FAMILIES = {"fp32": "Blues", "fp16": "Greens", "bf16": "Purples", "int8": "Oranges", "other": "Greys"}
 CEILING_STYLES = {"fp32": "-", "int8": "--", "bf16": "-.", "fp16": ":"}
@@ -118,4 +118,4 @@ def _all_ceilings(rows: list[Row]) -> dict[str, float]:
     return {name: float(value) for name, value in (peak.get("machine_flops") or {}).items() if value > 0}
 
 
-SECTION = Section(markdown_lines, html_parts, print_terminal, profile_plots)  # the profile scenario's section
+SECTION = Section(blocks, profile_plots)  # the profile scenario's section

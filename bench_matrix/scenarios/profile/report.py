@@ -5,14 +5,13 @@ profiler's overhead, its time's shares by operator kind × precision and its pla
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from typing import Any
 
 from bench_matrix.op_profile import KINDS, PRECISIONS
 from bench_matrix.report.analysis.roofline import best_peaks, model_work, roofline
 from bench_matrix.report.analysis.summary import ModelSummary, Row, number
 from bench_matrix.report.render.columns import DASH, Column, fixed, sig
-from bench_matrix.report.render.html_parts import esc, table
+from bench_matrix.report.render.sections import Block
 
 INTRO = ("Each cell's test sample ran under its runtime's own profiler after the rounds (docs/metrics.md, "
          "Profiles): its time by operator kind and the precision each operator ran at, as shares of the "
@@ -106,7 +105,7 @@ def columns(rows: list[Row]) -> list[Column]:
     found = {key for row in rows for key in shares(row)}
     pairs = [(k, p) for k in KINDS for p in PRECISIONS if (k, p) in found]
     return [*_time_columns(),
-            *(Column(f"{k} {p} %", f"share of the profiled time in {k} operators run at {p}.",
+            *(Column(f"{k} {p} %", SHARE_NOTE,
                      lambda row, key=(k, p): _percent(shares(row).get(key, 0.0)), "profile")
               for k, p in pairs),
             *_float_column(rows), *_roofline_columns(rows)]
@@ -167,49 +166,10 @@ def reasons(model: ModelSummary) -> list[str]:
     return found
 
 
-def markdown_lines(model: ModelSummary, table: Callable[[list[str], list[bool], list[list[str]]], str],
-                   escape: Callable[[str], str]) -> list[str]:
-    """The model page's "Where the time goes" section (empty when no cell has a profile)."""
+def blocks(model: ModelSummary) -> list[Block]:
+    """The model's "Where the time goes" block (none without a profile), its short form for the terminal."""
     found = profiled(model)
     if not found:
         return []
-    shown = columns(found)
-    notes = [c for c in shown if c.header in (FLOAT_IN_INT8, "GFLOP/s", "Roofline %")]
-    return ["## Where the time goes", "", escape(INTRO), "",
-            table([escape(c.header) for c in shown], [c.numeric for c in shown],
-                  [[escape(c.render(row)) for c in shown] for row in found]),
-            "", *(f"{escape(line)}  " for line in machine_lines(found)), "", "Columns:", "",
-            *(f"- **{escape(c.header)}**: {escape(c.note)}" for c in shown[:3]),
-            f"- **KIND PRECISION %**: {escape(SHARE_NOTE)}",
-            *(f"- **{escape(c.header)}**: {escape(c.note)}" for c in notes), "",
-            *(f"{escape(line)}  " for line in reasons(model)), ""]
-
-
-def html_parts(model: ModelSummary) -> list[str]:
-    """The HTML page's section: the profile table."""
-    found = profiled(model)
-    if not found:
-        return []
-    shown = columns(found)
-    return ["<h3>Where the time goes</h3>", f"<p>{esc(INTRO)}</p>",
-            table([(c.header, c.note) for c in shown], [c.numeric for c in shown],
-                  [[c.render(row) for c in shown] for row in found]),
-            *(f"<p>{esc(line)}</p>" for line in [*machine_lines(found), *reasons(model)])]
-
-
-def print_terminal(model: ModelSummary, console: Any) -> None:
-    """Print the short form of the profile table, if a cell has a profile."""
-    from rich.table import Table
-
-    found = profiled(model)
-    if not found:
-        return
-    shown = short_columns(found)
-    table = Table(title=f"{model.name}: where the time goes (profiled)", title_justify="left")
-    for column in shown:
-        table.add_column(column.header, justify="right" if column.numeric else "left")
-    for row in found:
-        table.add_row(*(c.render(row) for c in shown))
-    console.print(table)
-    for line in [*machine_lines(found), *reasons(model)]:
-        console.print(line, highlight=False)
+    lines = [*machine_lines(found), *reasons(model)]
+    return [Block("Where the time goes", INTRO, columns(found), found, lines, brief=short_columns(found))]

@@ -8,8 +8,7 @@ from typing import Any
 
 from bench_matrix.report.analysis.summary import ModelSummary, Row, number
 from bench_matrix.report.render.columns import DASH, Column, fixed, sig
-from bench_matrix.report.render.html_parts import esc, table
-from bench_matrix.report.render.sections import Section
+from bench_matrix.report.render.sections import Block, Section
 
 INTRO = ("Each cell's own artifact served frames arriving on a fixed clock (docs/stream.md defines every "
          "figure): a frame is due by the next frame's arrival; with policy skip the frames that arrive while "
@@ -65,44 +64,11 @@ def streamed(model: ModelSummary) -> list[Row]:
     return [row for row in model.rows if isinstance(row.record.metrics.others.get("stream"), dict)]
 
 
-def markdown_lines(model: ModelSummary, table: Callable[[list[str], list[bool], list[list[str]]], str],
-                   escape: Callable[[str], str]) -> list[str]:
-    """The model page's "Stream" section (empty when no cell served it): the table and its column notes."""
+def blocks(model: ModelSummary) -> list[Block]:
+    """The model's "Stream" block (none when no cell served it); the terminal leaves TERMINAL_LEFT_OUT out."""
     found = streamed(model)
-    if not found:
-        return []
-    return ["## Stream", "", escape(INTRO), "",
-            table([escape(c.header) for c in COLUMNS], [c.numeric for c in COLUMNS],
-                  [[escape(c.render(row)) for c in COLUMNS] for row in found]),
-            "", "Columns:", "", *(f"- **{escape(c.header)}**: {escape(c.note)}" for c in COLUMNS), ""]
+    brief = [c for c in COLUMNS if c.header not in TERMINAL_LEFT_OUT]
+    return [Block("Stream", INTRO, COLUMNS, found, brief=brief)] if found else []
 
 
-def html_parts(model: ModelSummary) -> list[str]:
-    """The HTML page's section: the stream table (every column)."""
-    found = streamed(model)
-    if not found:
-        return []
-    return ["<h3>Stream</h3>", f"<p>{esc(INTRO)}</p>",
-            table([(c.header, c.note) for c in COLUMNS], [c.numeric for c in COLUMNS],
-                  [[c.render(row) for c in COLUMNS] for row in found])]
-
-
-def print_terminal(model: ModelSummary, console: Any) -> None:
-    """Print the stream table without TERMINAL_LEFT_OUT's columns, if a cell served the stream."""
-    from rich.table import Table
-
-    found = streamed(model)
-    if not found:
-        return
-    shown = [c for c in COLUMNS if c.header not in TERMINAL_LEFT_OUT]
-    rendered = [[c.render(row) for c in shown] for row in found]
-    table = Table(title=f"{model.name}: stream", title_justify="left")
-    for k, column in enumerate(shown):
-        table.add_column(column.header, justify="right" if column.numeric else "left",
-                         min_width=max(len(cells[k]) for cells in rendered))
-    for cells in rendered:
-        table.add_row(*cells)
-    console.print(table)
-
-
-SECTION = Section(markdown_lines, html_parts, print_terminal)  # the stream scenario's section of a report
+SECTION = Section(blocks)  # the stream scenario's section of a report
