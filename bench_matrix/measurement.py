@@ -233,10 +233,6 @@ class Measurement:
             parts.update(getattr(self, attr).to_json())
         return {k: parts[k] for k in (*self.order, *parts) if k in parts}
 
-    def with_fields(self, **fields: Any) -> Measurement:
-        """This measurement with these JSON fields set (added last when new)."""
-        return Measurement.from_json({**self.to_json(), **fields})
-
     def figure(self, key: str) -> Any:
         """A flat figure by its record key (`mse`, `throughput_sps`, a plugin's `NAME.FIGURE`), or None."""
         for attr, kind in _FLAT.items():

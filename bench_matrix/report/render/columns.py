@@ -72,8 +72,6 @@ class Column:
         return bool(self.group)
 
 
-def _method(row: Row) -> str:
-    return row.record.cell.label + (" (baseline)" if row.is_baseline else "")
 
 
 APPROXIMATE = " ~"  # after a timed figure: disturbed, or missed the ci_target asked for (docs/metrics.md §5)
@@ -103,9 +101,12 @@ VERDICT = Column("Verdict", "against the model's requirements (see Verdict): pas
                  "requirement missed and by how much; uncertain, with the timed figure whose 95 % interval "
                  "straddles its limit.", lambda r: r.verdict.short() if r.verdict is not None else DASH, "",
                  optional=True)
+METHOD = Column("Method", "backend, strategy and precision (and target when not cpu) of the cell; "
+                "(baseline): the model's baseline.",
+                lambda r: r.record.cell.label + (" (baseline)" if r.is_baseline else ""), "")
 SIZE, ACCURACY, SPEED, THROUGHPUT = "size", "accuracy", "speed", "throughput"
 LEADING: tuple[Column, ...] = (
-    Column("Method", "backend, strategy and precision (and target when not cpu) of the cell.", _method, ""),
+    METHOD,
     Column("Size\nMiB", "size of the converted model artifact on disk, in MiB (2^20 bytes).",
            lambda r: mib(figure(r.record, lambda m: m.size.bytes)), SIZE),
     Column("gzip\nMiB", "size of the artifact after gzip, in MiB: what weight sharing and pruning save in transfer.",

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from bench_matrix.report.analysis.summary import ModelSummary
-from bench_matrix.report.render.columns import DASH, Column
+from bench_matrix.report.render.columns import DASH, METHOD, Column
 from bench_matrix.report.render.plots import Plot
 from bench_matrix.report.render.sections import Block
 from bench_matrix.store import CellRecord
@@ -92,9 +92,7 @@ def spread_lines(rows: list[MarginRow]) -> list[str]:
 
 def columns(rows: list[MarginRow]) -> list[Column]:
     """The margins table's columns: the cell, the circuit, each margin searched and its ratio, the cost."""
-    found = [Column("Method", "the cell.",
-                    lambda row: row.record.cell.label + (" (baseline)" if row.is_baseline else ""), ""),
-             Column("Circuit", "the circuit searched on.", lambda row: row.circuit, "")]
+    found = [METHOD, Column("Circuit", "the circuit searched on.", lambda row: row.circuit, "")]
     for kind in kinds(rows):
         found += [Column(TITLES[kind], NOTES[kind], lambda row, k=kind: shown(row.margins.get(k)), "margin"),
                   Column("× baseline", f"{kind} margin ÷ the baseline's", lambda row, k=kind: ratio(

@@ -10,7 +10,7 @@ from typing import Any
 from bench_matrix.op_profile import KINDS, PRECISIONS
 from bench_matrix.report.analysis.roofline import best_peaks, model_work, roofline
 from bench_matrix.report.analysis.summary import ModelSummary, Row, number
-from bench_matrix.report.render.columns import DASH, Column, fixed, sig
+from bench_matrix.report.render.columns import DASH, METHOD, Column, fixed, sig
 from bench_matrix.report.render.sections import Block
 
 INTRO = ("Each cell's test sample ran under its runtime's own profiler after the rounds (docs/metrics.md, "
@@ -20,8 +20,6 @@ SHARE_NOTE = "share of the profiled time in operators of that kind (docs/metrics
 FLOAT_IN_INT8 = "float in int8 %"
 FLOATS = ("fp32", "fp16", "bf16")
 TOP_KINDS = 3
-METHOD = Column("Method", "backend, strategy and precision of the cell.", lambda row: row.record.cell.label,
-                "")
 
 
 def profiled(model: ModelSummary) -> list[Row]:

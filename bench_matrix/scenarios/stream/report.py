@@ -7,7 +7,7 @@ from collections.abc import Callable
 from typing import Any
 
 from bench_matrix.report.analysis.summary import ModelSummary, Row, number
-from bench_matrix.report.render.columns import DASH, Column, fixed, sig
+from bench_matrix.report.render.columns import DASH, METHOD, Column, fixed, sig
 from bench_matrix.report.render.sections import Block, Section
 
 INTRO = ("Each cell's own artifact served frames arriving on a fixed clock (docs/stream.md defines every "
@@ -37,7 +37,7 @@ def _percent(value: float | None) -> str:
 
 
 COLUMNS: tuple[Column, ...] = (
-    Column("Method", "backend, strategy and precision of the cell.", lambda row: row.record.cell.label, ""),
+    METHOD,
     Column("Policy", "skip: frames arriving while a call runs are dropped; queue: they wait.",
            lambda row: str(_stream(row).get("policy", DASH)), ""),
     _column("Rate Hz", "the frames' rate asked for.", "rate_hz", _plain),
