@@ -15,6 +15,7 @@ from bench_matrix.store import CellRecord
 from bench_matrix.verdict import FAIL, PASS, judge
 
 BASE = Cell("m", "pytorch", "pytorch", "none", "fp32", "cpu")
+SCRIPTED = Cell("m", "pytorch", "torchscript", "none", "fp32", "cpu")
 INT8 = Cell("m", "pytorch", "onnxruntime", "ptq_static", "int8", "cpu")
 
 
@@ -68,3 +69,30 @@ def test_cells_the_search_cannot_tell_apart_are_said_to_be_alike() -> None:
     page = "\n".join(line for block in blocks(model) for line in block_lines(block))
     alike = "- hairpin, latency: every cell's margin is 200: alike to within the search's resolution, 10"
     assert alike in page
+
+
+def test_a_cell_that_drove_without_a_margin_search_is_named() -> None:
+    driven = CellRecord(cell=SCRIPTED, status="ok", env={"host": "h"},
+                        metrics={"closed_loop": {"hairpin": {"lock_step": {"completed_pct": 100.0}}}})
+    records = [record(BASE, latency=answer("found", 200.0)), driven]
+    (model,) = summarize(records, {"m": {"baseline_key": BASE.key}}, {}).models
+    page = "\n".join(line for block in blocks(model) for line in block_lines(block))
+    assert "| torchscript none fp32 |" not in page
+    assert "- hairpin, latency:" not in page  # one cell searched: no spread to state
+    assert "- Not searched: torchscript none fp32 (they drove their laps;" in page
+    (model,) = summarize(records[:1], {"m": {"baseline_key": BASE.key}}, {}).models
+    assert "Not searched" not in "\n".join(line for block in blocks(model) for line in block_lines(block))
+
+
+def test_the_spread_names_every_cell_at_each_end_or_counts_them() -> None:
+    cells = [Cell("m", "pytorch", backend, "none", "fp32", "cpu")
+             for backend in ("torchscript", "torch_compile", "onnxruntime")]
+    records = [record(BASE, latency=answer("found", 200.0)), record(INT8, latency=answer("found", 150.0)),
+               *(record(cell, latency=answer("found", 200.0)) for cell in cells)]
+    (model,) = summarize(records, {"m": {"baseline_key": BASE.key}}, {}).models
+    page = "\n".join(line for block in blocks(model) for line in block_lines(block))
+    assert "- hairpin, latency: from 150 (onnxruntime ptq_static int8) to 200 (4 cells), resolution 10" \
+        in page
+    (model,) = summarize(records[:3], {"m": {"baseline_key": BASE.key}}, {}).models
+    page = "\n".join(line for block in blocks(model) for line in block_lines(block))
+    assert "to 200 (pytorch none fp32 and torchscript none fp32), resolution 10" in page

@@ -78,16 +78,22 @@ def spread_lines(rows: list[MarginRow]) -> list[str]:
         for kind in kinds(rows):
             answers = [(row.record.cell.label, row.margins.get(kind)) for row in rows
                        if row.circuit == circuit]
-            values = sorted((value, label) for label, a in answers if (value := _value(a)) is not None)
+            values = {label: value for label, a in answers if (value := _value(a)) is not None}
             if len(values) < 2:
                 continue
             resolution = max(a.get("resolution", 0) for _, a in answers if isinstance(a, dict))
-            (low, lowest), (high, highest) = values[0], values[-1]
+            low, high = min(values.values()), max(values.values())
             lines.append(f"{circuit}, {kind}: every cell's margin is {low:g}: alike to within the search's "
                          f"resolution, {resolution:g}" if low == high else
-                         f"{circuit}, {kind}: from {low:g} ({lowest}) to {high:g} ({highest}), resolution "
-                         f"{resolution:g}")
+                         f"{circuit}, {kind}: from {low:g} ({_holding(values, low)}) to {high:g} "
+                         f"({_holding(values, high)}), resolution {resolution:g}")
     return lines
+
+
+def _holding(values: dict[str, float], value: float) -> str:
+    """The cells whose margin is `value`: their names, or how many when more than two."""
+    names = [label for label, found in values.items() if found == value]
+    return " and ".join(names) if len(names) <= 2 else f"{len(names)} cells"
 
 
 def columns(rows: list[MarginRow]) -> list[Column]:
@@ -107,7 +113,16 @@ def blocks(model: ModelSummary) -> list[Block]:
     rows = margin_rows(model)
     if not rows:
         return []
-    return [Block("Closed-loop margins", INTRO, columns(rows), rows, spread_lines(rows), level=3)]
+    lines = spread_lines(rows) + unsearched(model)
+    return [Block("Closed-loop margins", INTRO, columns(rows), rows, lines, level=3)]
+
+
+def unsearched(model: ModelSummary) -> list[str]:
+    """A line naming the cells that drove laps but had no margin searched (the matrix left them out)."""
+    names = [row.record.cell.label for row in model.rows
+             if isinstance(row.record.metrics.others.get("closed_loop"), dict) and not _searched(row.record)]
+    return [f"Not searched: {', '.join(names)} (they drove their laps; the matrix's closed_loop.margins "
+            "cells and exclude left them out)"] if names else []
 
 
 def margin_plots(model: ModelSummary, folder: Path) -> list[Plot]:
