@@ -72,8 +72,6 @@ class Column:
         return bool(self.group)
 
 
-
-
 APPROXIMATE = " ~"  # after a timed figure: disturbed, or missed the ci_target asked for (docs/metrics.md §5)
 EMULATED = " (emu)"  # after a timing measured on an emulated device (qemu-user): not the board's speed
 

@@ -78,11 +78,11 @@ def spread_lines(rows: list[MarginRow]) -> list[str]:
         for kind in kinds(rows):
             answers = [(row.record.cell.label, row.margins.get(kind)) for row in rows
                        if row.circuit == circuit]
-            values = {label: value for label, a in answers if (value := _value(a)) is not None}
+            values = [(label, value) for label, a in answers if (value := _value(a)) is not None]
             if len(values) < 2:
                 continue
             resolution = max(a.get("resolution", 0) for _, a in answers if isinstance(a, dict))
-            low, high = min(values.values()), max(values.values())
+            low, high = min(v for _, v in values), max(v for _, v in values)
             lines.append(f"{circuit}, {kind}: every cell's margin is {low:g}: alike to within the search's "
                          f"resolution, {resolution:g}" if low == high else
                          f"{circuit}, {kind}: from {low:g} ({_holding(values, low)}) to {high:g} "
@@ -90,9 +90,9 @@ def spread_lines(rows: list[MarginRow]) -> list[str]:
     return lines
 
 
-def _holding(values: dict[str, float], value: float) -> str:
+def _holding(values: list[tuple[str, float]], value: float) -> str:
     """The cells whose margin is `value`: their names, or how many when more than two."""
-    names = [label for label, found in values.items() if found == value]
+    names = [label for label, found in values if found == value]
     return " and ".join(names) if len(names) <= 2 else f"{len(names)} cells"
 
 
